@@ -1,0 +1,97 @@
+"""One Taichi runtime per process.
+
+Taichi allows a single ``ti.init`` per process that matters: a second init
+silently resets every field. ``init`` is therefore idempotent for the same
+architecture and raises for a different one.
+"""
+
+from __future__ import annotations
+
+import os
+
+import taichi as ti
+
+ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
+
+_state: dict[str, str | None] = {"arch": None, "requested": None}
+
+
+class RuntimeConfigError(RuntimeError):
+    """A second, different Taichi initialisation was requested."""
+
+
+def _resolve(arch: str) -> list:
+    if arch == "cpu":
+        return [ti.cpu]
+    if arch == "cuda":
+        return [ti.cuda]
+    if arch == "vulkan":
+        return [ti.vulkan]
+    if arch == "metal":
+        return [ti.metal]
+    return [ti.cuda, ti.vulkan, ti.metal, ti.cpu]
+
+
+def init(arch: str = "auto", *, debug: bool = False) -> str:
+    """Initialise Taichi once for this process.
+
+    Args:
+        arch: one of ``auto|cpu|cuda|vulkan|metal``. ``auto`` picks the first
+            GPU backend available and falls back to the CPU.
+        debug: enable Taichi's bound checks (slow).
+
+    Returns:
+        The name of the backend in use (``x64``, ``cuda``, ...).
+
+    Raises:
+        ValueError: ``arch`` is not one of the allowed names.
+        RuntimeConfigError: Taichi is already running on a different backend.
+    """
+    if arch not in ARCHES:
+        raise ValueError(f"arch {arch!r} is not allowed; allowed: {', '.join(ARCHES)}")
+    if _state["arch"] is not None:
+        running = _state["arch"]
+        if arch in ("auto", _state["requested"]) or _matches(arch, running):
+            return running
+        raise RuntimeConfigError(
+            f"Taichi already runs on {running!r} (requested {_state['requested']!r}); "
+            f"a second init with arch={arch!r} is not allowed in the same process"
+        )
+    candidates = _resolve(arch)
+    kwargs = {}
+    if "SANDBOX_THREADS" in os.environ:
+        kwargs["cpu_max_num_threads"] = int(os.environ["SANDBOX_THREADS"])
+    ti.init(
+        arch=candidates if arch == "auto" else candidates[0],
+        debug=debug,
+        random_seed=0,
+        default_fp=ti.f32,
+        offline_cache=True,
+        log_level=os.environ.get("SANDBOX_TI_LOG", "warn"),
+        **kwargs,
+    )
+    running = str(ti.lang.impl.current_cfg().arch).split(".")[-1]
+    if arch not in ("auto", "cpu") and not _matches(arch, running):
+        raise RuntimeConfigError(f"arch {arch!r} was requested but Taichi started on {running!r}")
+    _state["arch"] = running
+    _state["requested"] = arch
+    return running
+
+
+def _matches(arch: str, running: str) -> bool:
+    return arch == running or (arch == "cpu" and running in ("x64", "arm64"))
+
+
+def ensure_init() -> str:
+    """Initialise on the CPU unless Taichi already runs; returns the backend."""
+    return _state["arch"] or init("cpu")
+
+
+def current_arch() -> str | None:
+    """The backend in use, or None before ``init``."""
+    return _state["arch"]
+
+
+def sync() -> None:
+    """Wait for queued kernels (needed before stopping a timer on a GPU)."""
+    ti.sync()

@@ -1,0 +1,1 @@
+"""Taichi rendering kernels: a software rasterizer that runs on CPU and GPU."""
