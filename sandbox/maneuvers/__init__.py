@@ -1,1 +1,4 @@
-"""maneuvers."""
+"""Maneuvers: importing this package registers every built-in maneuver."""
+
+from sandbox.maneuvers import basic  # noqa: F401
+from sandbox.maneuvers.base import REGISTRY, Maneuver, Status, register  # noqa: F401

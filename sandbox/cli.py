@@ -1,0 +1,122 @@
+"""Command line: ``sandbox run|play|check|bench``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
+
+
+def _overrides(items: list[str]) -> dict:
+    from sandbox.levels import parse_overrides
+
+    return parse_overrides(items)
+
+
+def cmd_run(a: argparse.Namespace) -> int:
+    from sandbox.runner import RunOptions, run_level
+
+    out = pathlib.Path(a.out or pathlib.Path("runs") / pathlib.Path(a.level).stem)
+    overrides = _overrides(a.set or [])
+    opts = RunOptions(
+        out=out, frames=a.frames, arch=a.arch, ply=a.ply, frames_every=a.frames_every or 0, video=a.video,
+        gif=a.gif, width=a.width, height=a.height, progress=not a.quiet, overrides=overrides,
+    )
+    code, summary = run_level(a.level, opts)
+    if summary.get("status") == "invalid":
+        print(summary["errors"], file=sys.stderr)
+        return code
+    fm = summary.get("frame_ms", {})
+    print(f"{summary.get('level')}: {summary['status']}, {summary.get('frames_run', 0)} frames, "
+          f"frame p50 {fm.get('p50') or 0:.1f} ms p95 {fm.get('p95') or 0:.1f} ms -> {out}")
+    for c in summary.get("criteria", []):
+        mark = "ok  " if c["ok"] else "FAIL"
+        bounds = " ".join(f"{k} {c[k]}" for k in ("min", "max", "equals") if c[k] is not None)
+        print(f"  {mark} {c['metric']}{'(' + str(c['of']) + ')' if c['of'] else ''} = {c['value']}  ({bounds})")
+    if summary.get("message"):
+        print(summary["message"], file=sys.stderr)
+    print("success" if summary.get("success") else "FAILED")
+    return code
+
+
+def cmd_play(a: argparse.Namespace) -> int:
+    try:
+        from sandbox.viewer.play import main as play
+    except ImportError as exc:
+        print(f"sandbox play is unavailable ({exc}); use: sandbox run {a.level} --frames-every 5 --video")
+        return 2
+    return play(a.level, arch=a.arch)
+
+
+def cmd_check(a: argparse.Namespace) -> int:
+    from sandbox.levels import LevelError, dump_level, load_level
+
+    import sandbox.maneuvers  # noqa: F401
+
+    code = 0
+    for path in a.levels:
+        try:
+            level = load_level(path)
+            print(f"{path}: ok ({level.name})")
+            if a.dump:
+                print(dump_level(level))
+        except (LevelError, FileNotFoundError) as exc:
+            print(exc, file=sys.stderr)
+            code = 2
+    return code
+
+
+def cmd_bench(a: argparse.Namespace) -> int:
+    from sandbox.bench import main as bench
+
+    return bench(a)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sandbox", description="Geodesic Control sandbox for ropes and cloth")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run", help="run a level headless and write its outputs")
+    r.add_argument("level")
+    r.add_argument("--out", help="output folder (default runs/<level>)")
+    r.add_argument("--frames", type=int, help="frames to run (default: the level's sim.frames)")
+    r.add_argument("--arch", choices=ARCHES, help="Taichi backend (default: the level's sim.arch)")
+    r.add_argument("--ply", action="store_true", help="also write final meshes to out/meshes/*.ply")
+    r.add_argument("--frames-every", type=int, metavar="K", help="write out/frames/NNNNN.png every K frames")
+    r.add_argument("--video", action="store_true", help="write out/anim.mp4")
+    r.add_argument("--gif", action="store_true", help="write out/anim.gif")
+    r.add_argument("--width", type=int, default=640)
+    r.add_argument("--height", type=int, default=480)
+    r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a level value, e.g. sim.substeps=20")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(fn=cmd_run)
+    pl = sub.add_parser("play", help="open an interactive window (needs a display and Vulkan)")
+    pl.add_argument("level")
+    pl.add_argument("--arch", choices=ARCHES, default="auto")
+    pl.set_defaults(fn=cmd_play)
+    c = sub.add_parser("check", help="validate level files")
+    c.add_argument("levels", nargs="+")
+    c.add_argument("--dump", action="store_true", help="print the level back as YAML")
+    c.set_defaults(fn=cmd_check)
+    b = sub.add_parser("bench", help="time levels headless against their budgets and a baseline")
+    b.add_argument("levels", nargs="*")
+    b.add_argument("--frames", type=int, default=60)
+    b.add_argument("--baseline", help="JSON baseline to compare with")
+    b.add_argument("--save", help="write results as a new baseline JSON")
+    b.add_argument("--arch", choices=ARCHES, default="cpu")
+    b.set_defaults(fn=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.fn(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,111 @@
+"""Success criteria: the metrics a level can check at the end of a run.
+
+Each metric is a function ``(world, of) -> value``; ``of`` names the bodies
+(ropes, cloths) it applies to, or None for all of them. A criterion holds
+when ``min <= value <= max`` and ``value == equals`` for the bounds given.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+
+def _bodies(world, of) -> list[str]:
+    names = list(world.ropes) + list(world.cloths)
+    if of is None:
+        return names
+    return [of] if isinstance(of, str) else list(of)
+
+
+def _max_strain(world, of) -> float:
+    return max((world.run_max["strain"].get(n, 0.0) for n in _bodies(world, of)), default=0.0)
+
+
+def _max_penetration(world, of) -> float:
+    return max((world.run_max["penetration"].get(n, 0.0) for n in _bodies(world, of)), default=0.0)
+
+
+def _max_penetration_ratio(world, of) -> float:
+    return max(
+        (world.run_max["penetration"].get(n, 0.0) / world.body_scale(n) for n in _bodies(world, of)), default=0.0
+    )
+
+
+def _final_strain(world, of) -> float:
+    m = world.solver.measure()
+    bodies = list(world.ropes) + list(world.cloths)
+    return max((float(m["strain"][bodies.index(n)]) for n in _bodies(world, of)), default=0.0)
+
+
+def _fsm_state(world, of) -> str:
+    return world.fsm.state if world.fsm is not None else "none"
+
+
+def _pin_drift(world, of) -> float:
+    return world.pin_drift()
+
+
+def _max_speed(world, of) -> float:
+    v = world.velocities()
+    return float(np.sqrt((v**2).sum(axis=1)).max()) if len(v) else 0.0
+
+
+def _min_height(world, of) -> float:
+    x = world.positions()
+    idx = np.concatenate([world.site_particles(n, "all") for n in _bodies(world, of)])
+    return float(x[idx, 1].min())
+
+
+def _rope_min_gap_ratio(world, of) -> float:
+    if world.solver.ropecol is None:
+        return float("inf")
+    gap = world.solver.ropecol.measure()
+    seg_rope = world.data.segment_rope
+    best = np.inf
+    for i, r in enumerate(world.data.ropes):
+        if of is None or r.name in _bodies(world, of):
+            g = gap[seg_rope == i]
+            if len(g):
+                best = min(best, float(g.min()) / r.radius)
+    return best
+
+
+METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
+    "max_strain": ("largest relative rod/edge stretch |l - r| / r over the run", _max_strain),
+    "final_strain": ("largest relative rod/edge stretch at the end", _final_strain),
+    "max_penetration": ("deepest penetration over the run (m): into ground, objects, other capsules", _max_penetration),
+    "max_penetration_ratio": ("max_penetration / (rope radius or cloth thickness)", _max_penetration_ratio),
+    "rope_min_gap_ratio": ("smallest capsule distance minus radii, over the radius, at the end", _rope_min_gap_ratio),
+    "pin_drift": ("largest distance of a held particle from its target at the end (m)", _pin_drift),
+    "max_speed": ("fastest particle at the end (m/s): small when settled", _max_speed),
+    "min_height": ("lowest particle of the bodies at the end (m)", _min_height),
+    "fsm_state": ("the FSM's state at the end (success, failure or a state name)", _fsm_state),
+}
+"""Metric name -> (description, function)."""
+
+
+def evaluate(criteria, world) -> list[dict]:
+    """Evaluate a level's ``success`` list; one dict per criterion."""
+    out = []
+    for c in criteria:
+        desc, fn = METRICS[c.metric]
+        try:
+            value = fn(world, c.of)
+            error = None
+        except Exception as exc:  # a metric that cannot be computed fails its criterion
+            value, error = None, f"{type(exc).__name__}: {exc}"
+        ok = error is None
+        if ok and c.min is not None:
+            ok = value >= c.min
+        if ok and c.max is not None:
+            ok = value <= c.max
+        if ok and c.equals is not None:
+            ok = value == c.equals
+        row = {"metric": c.metric, "of": c.of, "value": value, "min": c.min, "max": c.max, "equals": c.equals,
+               "ok": bool(ok)}
+        if error:
+            row["error"] = error
+        out.append(row)
+    return out

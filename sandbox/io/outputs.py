@@ -1,0 +1,97 @@
+"""Headless outputs: summary.json, metrics.jsonl, state.npz, meshes.
+
+Every file is valid at every moment: the summary is written atomically
+(temporary file + rename) at the start (status ``running``) and at the end,
+metrics lines are flushed per frame.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+from typing import Any
+
+import numpy as np
+
+
+def _default(o: Any):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (set, tuple)):
+        return list(o)
+    return str(o)
+
+
+def _clean(o: Any):
+    """Replace non-finite floats with None (JSON has no NaN/inf)."""
+    if isinstance(o, dict):
+        return {k: _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    if isinstance(o, (float, np.floating)) and not np.isfinite(o):
+        return None
+    return o
+
+
+def write_json_atomic(path: pathlib.Path, data: dict) -> None:
+    """Write JSON through a temporary file and a rename."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(_clean(data), indent=2, default=_default))
+    os.replace(tmp, path)
+
+
+class MetricsLog:
+    """metrics.jsonl: one JSON object per frame, flushed as it goes."""
+
+    def __init__(self, path: pathlib.Path) -> None:
+        self.file = open(path, "w", encoding="utf-8")
+
+    def write(self, row: dict) -> None:
+        self.file.write(json.dumps(_clean(row), default=_default) + "\n")
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def write_state(path: pathlib.Path, world) -> None:
+    """state.npz: ``rope_<name>`` and ``cloth_<name>`` (n, 3) float32 positions (m),
+    ``object_<name>`` (4, 4) float64 world pose, ``frame`` and ``time`` (s)."""
+    x = world.positions()
+    arrays: dict[str, np.ndarray] = {"frame": np.array(world.frame), "time": np.array(world.time)}
+    for name, r in world.ropes.items():
+        arrays[f"rope_{name}"] = x[r.start : r.end]
+    for name, c in world.cloths.items():
+        arrays[f"cloth_{name}"] = x[c.start : c.end]
+    for name in world.object_specs:
+        p, rot = world.objects.pose(world.object_index(name))
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = rot, p
+        arrays[f"object_{name}"] = m
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def write_meshes(folder: pathlib.Path, world) -> list[str]:
+    """meshes/<name>.ply for every cloth (its grid triangles), rope (polyline) and object."""
+    import trimesh
+
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    x = world.positions()
+    for name, c in world.cloths.items():
+        trimesh.Trimesh(x[c.start : c.end], c.faces, process=False).export(folder / f"cloth_{name}.ply")
+        written.append(f"cloth_{name}.ply")
+    for name, r in world.ropes.items():
+        pts = x[r.start : r.end]
+        trimesh.PointCloud(pts).export(folder / f"rope_{name}.ply")
+        written.append(f"rope_{name}.ply")
+    for name in world.object_specs:
+        v, f = world.objects.world_mesh(world.object_index(name))
+        trimesh.Trimesh(v, f, process=False).export(folder / f"object_{name}.ply")
+        written.append(f"object_{name}.ply")
+    return written

@@ -1,0 +1,176 @@
+"""Checks that need the whole level: names, shape parameters, files, criteria.
+
+They read the plain YAML data rather than validated models, so that they
+still run, and report, when other parts of the level are invalid.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from sandbox.levels.diagnostics import Finding
+
+FALLBACK_SHAPES: dict[str, dict[str, Any]] = {
+    "box": {"size": None},
+    "sphere": {"radius": None},
+    "cylinder": {"radius": None, "height": None},
+    "capsule": {"radius": None, "height": None},
+    "torus": {"major_radius": None, "minor_radius": None},
+    "wine_bottle": {"height": None, "radius": None, "neck_radius": None},
+    "basket": {
+        "radius": None, "height": None, "wall": None, "handle_radius": None, "handle_height": None,
+    },
+    "jeep": {"length": None, "width": None, "height": None},
+    "statue": {"height": None, "seed": None},
+    "mesh": {"path": None, "scale": None},
+}
+"""Shape -> parameter names (defaults unknown) when the builders cannot be imported."""
+
+_KINDS = (("objects", "object"), ("cloths", "cloth"), ("ropes", "rope"))
+
+
+def shapes() -> dict[str, dict[str, Any]]:
+    """Shape -> {parameter: default} from ``sandbox.objects.builders.SHAPES``, or the fallback."""
+    try:
+        from sandbox.objects.builders import SHAPES  # noqa: PLC0415
+    except ImportError:
+        return FALLBACK_SHAPES
+    return SHAPES
+
+
+def _items(data: Any, *keys: Any) -> Iterable[tuple[int, dict]]:
+    node = data
+    for key in keys:
+        if not isinstance(node, dict) or key not in node:
+            return
+        node = node[key]
+    if isinstance(node, list):
+        for i, item in enumerate(node):
+            if isinstance(item, dict):
+                yield i, item
+
+
+def scene_names(data: Any) -> dict[str, list[str]]:
+    """Kind ("object", "cloth", "rope") -> names given in the scene."""
+    out: dict[str, list[str]] = {kind: [] for _, kind in _KINDS}
+    for section, kind in _KINDS:
+        for _, item in _items(data, "scene", section):
+            if isinstance(item.get("name"), str):
+                out[kind].append(item["name"])
+    return out
+
+
+def check_names(data: Any) -> list[Finding]:
+    """Names must be unique across objects, cloths and ropes."""
+    seen: dict[str, str] = {}
+    out = []
+    for section, kind in _KINDS:
+        for i, item in _items(data, "scene", section):
+            name = item.get("name")
+            if not isinstance(name, str):
+                continue
+            where = f"{kind} {i}"
+            if name in seen:
+                out.append(Finding(
+                    ("scene", section, i, "name"),
+                    f"name {name!r} is already used by {seen[name]}; names must be unique "
+                    "across objects, cloths and ropes",
+                ))
+            else:
+                seen[name] = where
+    return out
+
+
+def _value_error(value: Any, default: Any) -> str | None:
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    if default is None:
+        return None
+    if isinstance(default, bool):
+        return None if isinstance(value, bool) else f"should be a boolean, got {value!r}"
+    if number(default):
+        return None if number(value) else f"should be a number, got {value!r}"
+    if isinstance(default, str):
+        return None if isinstance(value, str) else f"should be a string, got {value!r}"
+    if isinstance(default, (list, tuple)):
+        ok = isinstance(value, list) and len(value) == len(default) and all(map(number, value))
+        return None if ok else f"should be a list of {len(default)} numbers, got {value!r}"
+    return None
+
+
+def check_objects(data: Any, base_dir: pathlib.Path) -> list[Finding]:
+    """Shape parameters must be known to the shape's builder; mesh files must exist."""
+    table = shapes()
+    out = []
+    for i, item in _items(data, "scene", "objects"):
+        shape, params = item.get("shape"), item.get("params", {})
+        if shape not in table or not isinstance(params, dict):
+            continue  # reported by the schema
+        base = ("scene", "objects", i, "params")
+        allowed = table[shape]
+        for key, value in params.items():
+            if key not in allowed:
+                out.append(Finding(
+                    base + (key,),
+                    f"unknown parameter {key!r} for shape {shape!r}; allowed: "
+                    f"{', '.join(allowed) or '(none)'}",
+                    key=True,
+                ))
+                continue
+            problem = _value_error(value, allowed[key])
+            if problem:
+                out.append(Finding(base + (key,), f"parameter {key!r} {problem}"))
+        if shape == "mesh":
+            mesh = params.get("path")
+            if mesh is None:
+                out.append(Finding(base, "a 'mesh' object needs the parameter 'path'"))
+            elif not isinstance(mesh, str):
+                out.append(Finding(base + ("path",), f"'path' should be a string, got {mesh!r}"))
+            elif not (base_dir / mesh).is_file():
+                out.append(Finding(
+                    base + ("path",),
+                    f"mesh file {mesh!r} not found (looked for {base_dir / mesh}; paths are "
+                    "relative to the level file's folder)",
+                ))
+    return out
+
+
+def check_criteria(
+    data: Any, states: Iterable[str], maneuvers: Iterable[str]
+) -> list[Finding]:
+    """Every name in a criterion's ``of`` must be a body, a state or a maneuver of the level."""
+    names = scene_names(data)
+    states, maneuvers = sorted(states), sorted(maneuvers)
+    known = {n for group in names.values() for n in group} | set(states) | set(maneuvers)
+    listing = "; ".join(
+        f"{label}: {', '.join(group)}"
+        for label, group in (
+            ("objects", names["object"]), ("cloths", names["cloth"]),
+            ("ropes", names["rope"]), ("states", states), ("maneuvers", maneuvers),
+        )
+        if group
+    )
+    out = []
+    for i, item in _items(data, "success"):
+        of = item.get("of")
+        targets: list[tuple[tuple[Any, ...], Any]]
+        if isinstance(of, str):
+            targets = [(("success", i, "of"), of)]
+        elif isinstance(of, list):
+            targets = [(("success", i, "of", k), t) for k, t in enumerate(of)]
+        else:
+            continue
+        for path, target in targets:
+            if isinstance(target, str) and target not in known:
+                out.append(Finding(
+                    path, f"unknown target {target!r}; allowed: {listing or '(none)'}"
+                ))
+    return out
+
+
+def used_maneuvers(flat_states: Mapping[str, Any]) -> set[str]:
+    """Maneuver names run by an expanded FSM's states."""
+    return {s.maneuver for s in flat_states.values()}

@@ -1,0 +1,306 @@
+"""Load, validate and dump level files.
+
+Validation is strict and complete: the schema (types, ranges, unknown keys),
+the cross-references (names, shape parameters, mesh files, criteria) and the
+FSM (maneuvers and macros, their parameters after substitution, transitions)
+are all checked, and every problem is reported at once with its file, line
+and column. Nothing runs on an invalid level.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import warnings
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import pydantic
+import yaml
+
+from sandbox.levels import checks, yamlio
+from sandbox.levels.diagnostics import Finding, convert
+from sandbox.levels.expand import expand
+from sandbox.levels.issues import LevelError, LevelIssue, LevelWarning, Severity, format_path
+from sandbox.levels.schema import FSM, Level, Macro
+from sandbox.maneuvers.base import REGISTRY, Maneuver
+
+_FSM = pydantic.TypeAdapter(FSM)
+_MACRO = pydantic.TypeAdapter(Macro)
+
+
+@dataclasses.dataclass
+class LevelCheck:
+    """The outcome of checking a level.
+
+    Attributes:
+        level: the level, or None when there are errors.
+        errors: problems that stop it from loading.
+        warnings: problems that do not.
+    """
+
+    level: Level | None
+    errors: list[LevelIssue]
+    warnings: list[LevelIssue]
+
+
+def load_level(
+    path: str | pathlib.Path,
+    overrides: Mapping[str, Any] | None = None,
+    *,
+    registry: Mapping[str, type[Maneuver]] | None = None,
+) -> Level:
+    """Load and validate a level file.
+
+    Args:
+        path: the YAML file; relative paths inside it (meshes) are relative
+            to its folder.
+        overrides: dotted keys and values set before validation, e.g.
+            ``{"sim.frames": 10, "scene.ropes.0.radius": 0.01}``.
+        registry: maneuver name -> class (default: the global registry).
+
+    Raises:
+        LevelError: listing every problem, one per line.
+    """
+    return _raise_or_return(check_level(path, overrides, registry=registry))
+
+
+def load_level_from_string(
+    text: str,
+    *,
+    source: str = "<string>",
+    base_dir: str | pathlib.Path | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    registry: Mapping[str, type[Maneuver]] | None = None,
+) -> Level:
+    """Load and validate a level from YAML text.
+
+    Args:
+        text: the YAML.
+        source: the name used in messages.
+        base_dir: folder that relative file paths start from (default: cwd).
+        overrides: as for ``load_level``.
+        registry: as for ``load_level``.
+
+    Raises:
+        LevelError: listing every problem, one per line.
+    """
+    return _raise_or_return(
+        check_level_text(text, source=source, base_dir=base_dir, overrides=overrides,
+                         registry=registry)
+    )
+
+
+def _raise_or_return(result: LevelCheck) -> Level:
+    if result.errors:
+        raise LevelError(result.errors, result.warnings)
+    for issue in result.warnings:
+        warnings.warn(str(issue), LevelWarning, stacklevel=3)
+    assert result.level is not None
+    return result.level
+
+
+def check_level(
+    path: str | pathlib.Path,
+    overrides: Mapping[str, Any] | None = None,
+    *,
+    registry: Mapping[str, type[Maneuver]] | None = None,
+) -> LevelCheck:
+    """Check a level file without raising; see ``load_level``."""
+    path = pathlib.Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        issue = LevelIssue(str(path), 0, 0, "", f"cannot read the level: {exc.strerror or exc}")
+        return LevelCheck(None, [issue], [])
+    return check_level_text(
+        text, source=str(path), base_dir=path.parent, overrides=overrides, registry=registry
+    )
+
+
+def check_level_text(
+    text: str,
+    *,
+    source: str = "<string>",
+    base_dir: str | pathlib.Path | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    registry: Mapping[str, type[Maneuver]] | None = None,
+) -> LevelCheck:
+    """Check YAML text without raising; see ``load_level_from_string``."""
+    registry = REGISTRY if registry is None else registry
+    base = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
+    try:
+        doc = yamlio.parse(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line, col = (mark.line + 1, mark.column + 1) if mark else (0, 0)
+        problem = " ".join(p for p in (exc.context, exc.problem) if p)
+        return LevelCheck(None, [LevelIssue(source, line, col, "", f"YAML syntax: {problem}")], [])
+    if doc.data is None:
+        doc.data = {}
+    findings = [Finding(path, msg) for path, _, msg in doc.problems]
+    if not isinstance(doc.data, dict):
+        findings.append(Finding((), "a level must be a mapping (version, name, scene, fsm, ...)"))
+        return _result(None, findings, doc, source, set())
+    overridden, problems = apply_overrides(doc.data, overrides or {})
+    findings += problems
+    level, found = _validate(doc.data, base, registry)
+    findings += found
+    return _result(level, findings, doc, source, overridden)
+
+
+def _validate(
+    data: dict, base_dir: pathlib.Path, registry: Mapping[str, type[Maneuver]]
+) -> tuple[Level | None, list[Finding]]:
+    findings: list[Finding] = []
+    level = None
+    try:
+        level = Level.model_validate(data)
+    except pydantic.ValidationError as exc:
+        findings += convert(exc, Level, data)
+    findings += checks.check_names(data)
+    findings += checks.check_objects(data, base_dir)
+
+    macros: dict[str, Macro] = {}
+    unchecked: set[str] = set()
+    raw_macros = data.get("macros")
+    if isinstance(raw_macros, dict):
+        for name, raw in raw_macros.items():
+            try:
+                macros[name] = _MACRO.validate_python(raw)
+            except pydantic.ValidationError:
+                unchecked.add(name)  # reported by the schema
+    try:
+        fsm = _FSM.validate_python(data.get("fsm"))
+    except pydantic.ValidationError:
+        fsm = None  # reported by the schema; the macros are still checked
+    flat, found = expand(fsm, macros, registry, unchecked=unchecked)
+    findings += found
+    if fsm is not None:  # without states, a criterion's targets cannot be told apart
+        findings += checks.check_criteria(data, flat.names(), checks.used_maneuvers(flat.states))
+    if any(f.severity is Severity.ERROR for f in findings):
+        level = None
+    return level, findings
+
+
+def issues_from_findings(
+    findings: Iterable[Finding],
+    source: str,
+    doc: yamlio.Document | None = None,
+    overridden: set[yamlio.Path] | None = None,
+) -> list[LevelIssue]:
+    """Give findings their file positions, sorted by position.
+
+    Args:
+        findings: the problems.
+        source: the file name written in each issue.
+        doc: the parsed document (without it, lines and columns are 0).
+        overridden: document paths set by overrides (their problems say so).
+    """
+    out = []
+    for f in findings:
+        line = col = 0
+        if doc is not None:
+            _, mark = doc.locate(f.path, key=f.key)
+            line, col = mark.line, mark.column
+        message = f.message
+        for opath in overridden or ():
+            if f.path[: len(opath)] == opath:
+                message += f" (value set by override {'.'.join(map(str, opath))!r})"
+                break
+        if f.trace:
+            steps = []
+            for label, tpath in f.trace:
+                if doc is not None:
+                    label += f" at line {doc.locate(tpath, key=True)[1].line}"
+                steps.append(label)
+            message += f" ({'; '.join(steps)})"
+        out.append(LevelIssue(source, line, col, format_path(f.path), message, f.severity))
+    out.sort(key=lambda i: (i.line, i.column))
+    return out
+
+
+def _result(
+    level: Level | None,
+    findings: list[Finding],
+    doc: yamlio.Document,
+    source: str,
+    overridden: set[yamlio.Path],
+) -> LevelCheck:
+    issues = issues_from_findings(findings, source, doc, overridden)
+    errors = [i for i in issues if i.severity is Severity.ERROR]
+    warns = [i for i in issues if i.severity is Severity.WARNING]
+    return LevelCheck(None if errors else level, errors, warns)
+
+
+def apply_overrides(
+    data: dict, overrides: Mapping[str, Any]
+) -> tuple[set[yamlio.Path], list[Finding]]:
+    """Set dotted keys in ``data`` in place (missing mappings are created).
+
+    A numeric part indexes a list (``scene.ropes.0.radius``).
+
+    Returns:
+        The document paths set, and problems with keys that cannot be set.
+    """
+    done: set[yamlio.Path] = set()
+    problems = []
+    for dotted, value in overrides.items():
+        parts: list[Any] = dotted.split(".")
+        node: Any = data
+        path: list[Any] = []
+        for k, part in enumerate(parts):
+            last = k == len(parts) - 1
+            if isinstance(node, list):
+                if not part.lstrip("-").isdigit() or not -len(node) <= int(part) < len(node):
+                    problems.append(Finding(
+                        tuple(path), f"override {dotted!r}: {part!r} is not an index of this "
+                        f"list of {len(node)}",
+                    ))
+                    break
+                part = int(part) % len(node)
+            elif not isinstance(node, dict):
+                problems.append(Finding(
+                    tuple(path), f"override {dotted!r}: {format_path(tuple(path))} is not a mapping"
+                ))
+                break
+            path.append(part)
+            if last:
+                node[part] = value
+                done.add(tuple(path))
+            else:
+                if isinstance(node, dict) and node.get(part) is None:
+                    node[part] = {}
+                node = node[part]
+    return done, problems
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
+    """``["sim.frames=10", "sim.arch=cpu"]`` -> ``{"sim.frames": 10, "sim.arch": "cpu"}``.
+
+    Values are read as YAML scalars or flow collections (``[0, 1, 0]``).
+
+    Raises:
+        ValueError: for an item without ``=`` or with a value that is not YAML.
+    """
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"override {item!r} is not of the form key=value")
+        try:
+            out[key.strip()] = yamlio.parse(text).data
+        except yaml.YAMLError as exc:
+            raise ValueError(f"override {item!r}: the value is not valid YAML ({exc})") from exc
+    return out
+
+
+def dump_level(level: Level, *, defaults: bool = False) -> str:
+    """The level as YAML that loads back to an equal level.
+
+    Args:
+        level: the level.
+        defaults: also write the values left at their defaults.
+    """
+    data = level.model_dump(mode="python", by_alias=True, exclude_defaults=not defaults)
+    return yamlio.dump(data)

@@ -1,0 +1,526 @@
+"""Level schema v1: what a level YAML file holds (SPEC §7).
+
+Every model rejects unknown keys; numbers are strict (a string or a boolean
+is not a number) and finite; ranges are checked with messages that state
+them. Cross-references (duplicate names, maneuvers, macros, transitions,
+criterion targets, mesh files) need the whole level and are checked by
+``sandbox.levels.loader``, which also knows line numbers.
+
+Units are SI (m, s, kg); angles are degrees; times in the FSM are ticks
+(one tick = one rendered frame).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import (
+    AfterValidator,
+    AllowInfNan,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Discriminator,
+    Field,
+    PlainValidator,
+    Strict,
+    Tag,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+
+def fail(kind: str, message: str) -> PydanticCustomError:
+    """A validation error of type ``kind`` with a fully formatted message."""
+    return PydanticCustomError(kind, message)
+
+SCHEMA_VERSION = 1
+TERMINAL_STATES = ("success", "failure")
+"""Names of the FSM's two terminal states."""
+
+CORNERS = ("A", "B", "C", "D")
+"""Cloth corners, counter-clockwise seen from above, A at (-x, -z) (SPEC §6)."""
+
+FALLBACK_METRICS = (
+    "max_strain",
+    "max_penetration",
+    "fsm_state",
+    "linking_number",
+    "winding_number",
+    "knot_type",
+    "coverage",
+    "overlap_error",
+)
+
+Float = Annotated[float, Strict(), AllowInfNan(False)]
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+Str = Annotated[str, Strict()]
+
+
+def _range_text(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
+    if lo is not None and hi is not None:
+        return f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f"{'>' if lo_open else '>='} {lo:g}"
+    return f"{'<' if hi_open else '<='} {hi:g}"
+
+
+def between(
+    kind: type,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+) -> Any:
+    """A strict ``int`` or ``float`` type limited to a range, whose error states the range."""
+    text = _range_text(lo, hi, lo_open, hi_open)
+
+    def check(value: float) -> float:
+        below = lo is not None and (value <= lo if lo_open else value < lo)
+        above = hi is not None and (value >= hi if hi_open else value > hi)
+        if below or above:
+            raise fail("out_of_range", f"{value!r} is out of range; allowed {text}")
+        return value
+
+    base = Int if kind is int else Float
+    return Annotated[base, AfterValidator(check)]
+
+
+Positive = between(float, 0, lo_open=True)
+NonNegative = between(float, 0)
+Unit = between(float, 0, 1)
+Friction = between(float, 0, 2)
+Vec3 = tuple[Float, Float, Float]
+Color = tuple[Unit, Unit, Unit]
+
+
+def _identifier(value: str) -> str:
+    if not value.isidentifier():
+        raise fail(
+            "identifier",
+            f"{value!r} is not a valid name; allowed: letters, digits and '_', "
+            "not starting with a digit",
+        )
+    return value
+
+
+Name = Annotated[Str, AfterValidator(_identifier)]
+
+Shape = Literal[
+    "box", "sphere", "cylinder", "capsule", "torus",
+    "wine_bottle", "basket", "jeep", "statue", "mesh",
+]
+Solver = Literal["xpbd", "projection"]
+Arch = Literal["auto", "cpu", "cuda", "vulkan", "metal"]
+Event = Literal["done", "failed", "timeout"]
+
+
+def _cloth_site(value: Any) -> str | tuple[int, int]:
+    if isinstance(value, str) and (value in CORNERS or value == "center"):
+        return value
+    if (
+        isinstance(value, (list, tuple))
+        and len(value) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+    ):
+        return (value[0], value[1])
+    raise fail(
+        "cloth_site",
+        f"{value!r} is not a cloth site; allowed: a corner 'A', 'B', 'C', 'D', 'center' "
+        "or a grid index [i, j]",
+    )
+
+
+def _rope_site(value: Any) -> str | int:
+    if value in ("start", "end") and isinstance(value, str):
+        return value
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    raise fail(
+        "rope_site",
+        f"{value!r} is not a rope site; allowed: 'start', 'end' or a particle index "
+        "(negative counts from the end)",
+    )
+
+
+_INDEX2 = {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2}
+ClothSite = Annotated[
+    Union[str, tuple[int, int]],
+    PlainValidator(_cloth_site),
+    WithJsonSchema({"anyOf": [{"enum": [*CORNERS, "center"]}, _INDEX2]}),
+]
+"""A cloth particle: a corner "A".."D", "center", or a grid index (i, j)."""
+RopeSite = Annotated[
+    Union[str, int],
+    PlainValidator(_rope_site),
+    WithJsonSchema({"anyOf": [{"enum": ["start", "end"]}, {"type": "integer"}]}),
+]
+"""A rope particle: "start", "end", or an index (negative counts from the end)."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+
+class Ground(_Model):
+    """An infinite horizontal plane.
+
+    Attributes:
+        height: y of the plane (m).
+        friction: Coulomb coefficient.
+    """
+
+    height: Float = 0.0
+    friction: Friction = 0.5
+
+
+class Camera(_Model):
+    """Initial viewpoint (m, degrees)."""
+
+    position: Vec3
+    look_at: Vec3
+    fov: between(float, 1, 170, lo_open=True, hi_open=True) = 45.0
+
+
+class Keyframe(_Model):
+    """A pose of a kinematic object at a time (s)."""
+
+    time: NonNegative
+    position: Vec3
+    rotation: Vec3 = (0.0, 0.0, 0.0)
+
+
+class Motion(_Model):
+    """A kinematic script: poses interpolated between keyframes."""
+
+    keyframes: Annotated[list[Keyframe], Field(min_length=2)]
+    loop: Bool = False
+
+    @field_validator("keyframes")
+    @classmethod
+    def _increasing(cls, keyframes: list[Keyframe]) -> list[Keyframe]:
+        for i in range(1, len(keyframes)):
+            if keyframes[i].time <= keyframes[i - 1].time:
+                raise fail(
+                    "keyframe_order",
+                    f"keyframe times must increase strictly; keyframe {i} "
+                    f"({keyframes[i].time:g} s) does not come after keyframe {i - 1} "
+                    f"({keyframes[i - 1].time:g} s)",
+                )
+        return keyframes
+
+
+class ObjectSpec(_Model):
+    """A rigid obstacle (static, or kinematic when ``motion`` is given).
+
+    ``params`` are the builder's shape parameters; their names are checked
+    against ``sandbox.objects.builders.SHAPES`` by the loader.
+    Pose: position (m) and XYZ Euler rotation (degrees, R = Rz Ry Rx).
+    """
+
+    name: Name
+    shape: Shape
+    params: dict[Str, Any] = {}
+    position: Vec3 = (0.0, 0.0, 0.0)
+    rotation: Vec3 = (0.0, 0.0, 0.0)
+    friction: Friction = 0.5
+    motion: Motion | None = None
+
+
+class ClothSpec(_Model):
+    """A rectangular cloth, flat in the xz plane at rest.
+
+    Attributes:
+        resolution: particles along x and z, ``[nx, nz]``; particle (i, j) has
+            index ``j * nx + i``.
+        size: extent along x and z (m).
+        center: position of the cloth's centre (m).
+        mass: total mass (kg).
+        thickness: collision thickness (m); None means 1.5 x particle spacing.
+        stretch_compliance, shear_compliance, bend_compliance: XPBD
+            compliances (inverse stiffness).
+        damping: velocity damping per step, in [0, 1].
+        pins: particles held in place.
+        color, back_color: RGB of the two sides, in [0, 1].
+    """
+
+    name: Name
+    resolution: tuple[between(int, 2, 1024), between(int, 2, 1024)]
+    size: tuple[Positive, Positive]
+    center: Vec3
+    mass: Positive = 0.5
+    thickness: Positive | None = None
+    stretch_compliance: NonNegative = 0.0
+    shear_compliance: NonNegative = 1e-6
+    bend_compliance: NonNegative = 1e-3
+    damping: Unit = 0.01
+    friction: Friction = 0.5
+    self_collision: Bool = True
+    pins: list[ClothSite] = []
+    color: Color = (0.8, 0.25, 0.2)
+    back_color: Color = (0.9, 0.8, 0.6)
+
+    @field_validator("pins")
+    @classmethod
+    def _pins_in_grid(cls, pins: list, info: ValidationInfo) -> list:
+        res = info.data.get("resolution")
+        if res is None:
+            return pins
+        for k, pin in enumerate(pins):
+            if isinstance(pin, tuple) and not (0 <= pin[0] < res[0] and 0 <= pin[1] < res[1]):
+                raise fail(
+                    "pin_range",
+                    f"pin {k} {list(pin)} is outside the grid; allowed i in [0, {res[0] - 1}], "
+                    f"j in [0, {res[1] - 1}]",
+                )
+        return pins
+
+
+class RopeSpec(_Model):
+    """A rope: a chain of particles along a polyline, as rods of equal length.
+
+    Exactly one of ``segments`` (number of rods) and ``rod_length`` (m) is
+    given; ``segment_count`` resolves either into a number of rods.
+    """
+
+    name: Name
+    points: Annotated[list[Vec3], Field(min_length=2)]
+    segments: between(int, 1, 4096) | None = None
+    rod_length: Positive | None = None
+    radius: Positive
+    mass: Positive = 0.05
+    stretch_compliance: NonNegative = 0.0
+    bend_compliance: NonNegative = 1e-2
+    damping: Unit = 0.01
+    friction: Friction = 0.5
+    pins: list[RopeSite] = []
+    color: Color = (0.2, 0.4, 0.9)
+
+    @field_validator("rod_length")
+    @classmethod
+    def _not_both(cls, value: float | None, info: ValidationInfo) -> float | None:
+        if value is not None and info.data.get("segments") is not None:
+            raise fail("segments_and_rod_length", "give either 'segments' or 'rod_length', not both")
+        return value
+
+    @model_validator(mode="after")
+    def _one_of(self) -> RopeSpec:
+        if self.segments is None and self.rod_length is None:
+            raise fail("segments_or_rod_length", "give one of 'segments' or 'rod_length'")
+        n = self.segment_count
+        for k, pin in enumerate(self.pins):
+            if isinstance(pin, int) and not -(n + 1) <= pin <= n:
+                raise fail(
+                    "pin_range",
+                    f"pin {k} ({pin}) is outside the rope; allowed indices in [{-(n + 1)}, {n}]",
+                )
+        return self
+
+    @property
+    def length(self) -> float:
+        """Length of the rest polyline (m)."""
+        return sum(math.dist(a, b) for a, b in zip(self.points, self.points[1:]))
+
+    @property
+    def segment_count(self) -> int:
+        """Number of rods: ``segments``, or ``max(1, round(length / rod_length))``."""
+        if self.segments is not None:
+            return self.segments
+        return max(1, round(self.length / self.rod_length))
+
+
+def _ground(value: Any) -> Any:
+    if value is False:
+        return None
+    if value is True:
+        return {}
+    return value
+
+
+class Scene(_Model):
+    """What is simulated: gravity (m/s^2), the ground, objects, cloths, ropes."""
+
+    gravity: Vec3 = (0.0, -9.81, 0.0)
+    ground: Annotated[Ground | None, BeforeValidator(_ground)] = Ground()
+    camera: Camera | None = None
+    objects: list[ObjectSpec] = []
+    cloths: list[ClothSpec] = []
+    ropes: list[RopeSpec] = []
+
+    def names(self) -> dict[str, str]:
+        """Name -> kind ("object", "cloth" or "rope") of every simulated body."""
+        out: dict[str, str] = {}
+        for kind, items in (("object", self.objects), ("cloth", self.cloths), ("rope", self.ropes)):
+            for item in items:
+                out.setdefault(item.name, kind)
+        return out
+
+
+class Sim(_Model):
+    """Time stepping: frames per second, substeps per frame, solver iterations.
+
+    ``max_retries`` is the number of stability rollbacks allowed per frame.
+    """
+
+    fps: between(int, 1, 1000) = 60
+    substeps: between(int, 1, 200) = 10
+    iterations: between(int, 1, 100) = 1
+    solver: Solver = "xpbd"
+    arch: Arch = "auto"
+    frames: between(int, 1, 1_000_000) = 240
+    max_retries: between(int, 0, 10) = 3
+
+
+class Budget(_Model):
+    """Frame-time limits (ms) checked by ``sandbox bench``."""
+
+    frame_ms_p50: Positive | None = None
+    frame_ms_p95: Positive | None = None
+
+
+def _known_metrics() -> list[str]:
+    try:
+        from sandbox.io.criteria import METRICS  # noqa: PLC0415
+    except ImportError:
+        return list(FALLBACK_METRICS)
+    return list(METRICS)
+
+
+class Criterion(_Model):
+    """A success condition checked at the end of a run.
+
+    Attributes:
+        metric: a name from ``sandbox.io.criteria.METRICS``.
+        of: the rope(s), cloth(s), object(s) or FSM state(s) it applies to.
+        min, max: inclusive bounds on the metric's value.
+        equals: the exact value (a number, or a name such as a knot type).
+    """
+
+    metric: Str
+    of: Str | list[Str] | None = None
+    min: Float | None = None
+    max: Float | None = None
+    equals: Str | Float | None = None
+
+    @field_validator("metric")
+    @classmethod
+    def _known(cls, value: str) -> str:
+        known = _known_metrics()
+        if value not in known:
+            raise fail("unknown_metric", f"unknown metric {value!r}; allowed: {', '.join(known)}")
+        return value
+
+    @model_validator(mode="after")
+    def _bounded(self) -> Criterion:
+        if self.min is None and self.max is None and self.equals is None:
+            raise fail("criterion_bound", "give at least one of 'min', 'max' or 'equals'")
+        if self.min is not None and self.max is not None and self.min > self.max:
+            raise fail("criterion_bound", f"min ({self.min:g}) is greater than max ({self.max:g})")
+        return self
+
+    def targets(self) -> list[str]:
+        """``of`` as a list (empty when not given)."""
+        if self.of is None:
+            return []
+        return [self.of] if isinstance(self.of, str) else list(self.of)
+
+
+Ticks = between(int, 1)
+
+
+class Step(_Model):
+    """One link of a chain: run a maneuver or macro with parameters.
+
+    ``with_`` is written ``with`` in YAML. ``timeout`` is in ticks (frames).
+    """
+
+    run: Str
+    with_: dict[Str, Any] = Field(default={}, alias="with")
+    timeout: Ticks | None = None
+    name: Str | None = None
+
+
+class State(_Model):
+    """A named FSM state.
+
+    Attributes:
+        run: a registered maneuver name or a macro name.
+        with_: its parameters (``with`` in YAML).
+        timeout: ticks (frames) before the ``timeout`` transition fires.
+        on: event -> destination (a state, ``success`` or ``failure``);
+            missing entries default to done -> success, failed/timeout -> failure.
+    """
+
+    run: Str
+    with_: dict[Str, Any] = Field(default={}, alias="with")
+    timeout: Ticks | None = None
+    on: dict[Event, Str] = {}
+
+
+class FSMGraph(_Model):
+    """An FSM written as named states and their transitions."""
+
+    initial: Str
+    states: Annotated[dict[Str, State], Field(min_length=1)]
+
+
+def _fsm_form(value: Any) -> str | None:
+    if isinstance(value, (list, tuple)):
+        return "chain"
+    if isinstance(value, (dict, FSMGraph)):
+        return "graph"
+    return None
+
+
+FSM = Annotated[
+    Union[
+        Annotated[Annotated[list[Step], Field(min_length=1)], Tag("chain")],
+        Annotated[FSMGraph, Tag("graph")],
+    ],
+    Discriminator(
+        _fsm_form,
+        custom_error_type="fsm_form",
+        custom_error_message="the FSM must be a list of steps (a chain) or a mapping "
+        "with 'initial' and 'states'",
+    ),
+]
+"""A chain (list of Steps, each ``done`` leading to the next) or an FSMGraph."""
+
+
+class Macro(_Model):
+    """A named, parameterised chain of steps.
+
+    Inside ``steps``, a string value ``"$P"`` in ``with`` is replaced by the
+    argument ``P`` of the state that runs the macro.
+    """
+
+    params: list[Name] = []
+    steps: Annotated[list[Step], Field(min_length=1)]
+
+    @field_validator("params")
+    @classmethod
+    def _unique(cls, params: list[str]) -> list[str]:
+        seen = [p for i, p in enumerate(params) if p in params[:i]]
+        if seen:
+            raise fail("duplicate_param", f"parameter {seen[0]!r} is declared twice")
+        return params
+
+
+class Level(_Model):
+    """A level: a scene, how to simulate it, and the FSM of maneuvers to run."""
+
+    version: Literal[1]
+    name: Str
+    description: Str = ""
+    scene: Scene
+    sim: Sim = Sim()
+    macros: dict[Str, Macro] = {}
+    fsm: FSM
+    success: list[Criterion] = []
+    budget: Budget = Budget()

@@ -1,0 +1,198 @@
+"""Basic maneuvers: Anchoring, MoveTo, Release, Wait.
+
+Sites are named per body (see ``World.site_particles``): rope ``start``,
+``end``, an index or an index range ``[i0, i1]``; cloth corners ``A``-``D``,
+``center``, ``[i, j]`` or a control line ``line1``-``line4``.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Union
+
+import numpy as np
+import pydantic
+
+from sandbox.maneuvers.base import Maneuver, Params, Status, register
+
+Vec3 = tuple[float, float, float]
+Site = Union[str, int, tuple[int, int]]
+
+
+class Target(Params):
+    """A point given directly or relative to an object's named site.
+
+    Either ``point`` (m) or ``object`` (+ ``site``: top, bottom, front, back,
+    left, right, center); ``offset`` (m) is added in both cases.
+    """
+
+    point: Vec3 | None = None
+    object: str | None = None
+    site: str = "top"
+    offset: Vec3 = (0.0, 0.0, 0.0)
+
+    @pydantic.model_validator(mode="after")
+    def _one_of(self):
+        if (self.point is None) == (self.object is None):
+            raise ValueError("give exactly one of 'point' or 'object'")
+        return self
+
+
+def resolve_target(world, target: Target) -> np.ndarray:
+    """World-space position (m) of a Target."""
+    if target.point is not None:
+        base = np.asarray(target.point, float)
+    else:
+        from sandbox.objects.sites import named_sites
+
+        k = world.object_index(target.object)
+        verts, faces = world.objects.world_mesh(k)
+        import trimesh
+
+        sites = named_sites(trimesh.Trimesh(verts, faces, process=False))
+        if target.site not in sites:
+            raise ValueError(f"object {target.object!r} has no site {target.site!r}; allowed: {', '.join(sites)}")
+        base = np.asarray(sites[target.site], float)
+    return base + np.asarray(target.offset, float)
+
+
+def _as_target(value: Any) -> Any:
+    if isinstance(value, (list, tuple)):
+        return {"point": value}
+    return value
+
+
+TargetLike = Annotated[Target, pydantic.BeforeValidator(_as_target)]
+
+
+class WaitParams(Params):
+    ticks: Annotated[int, pydantic.Field(ge=0)] = 0
+    seconds: Annotated[float, pydantic.Field(ge=0)] = 0.0
+
+
+@register
+class Wait(Maneuver):
+    """Do nothing for ``ticks`` frames plus ``seconds`` of simulated time."""
+
+    name = "Wait"
+    Params = WaitParams
+
+    def start(self) -> None:
+        self.total = self.params.ticks + int(round(self.params.seconds * self.world.fps))
+
+    def update(self) -> Status:
+        self.ticks += 1
+        self.progress = 1.0 if self.total == 0 else min(1.0, self.ticks / self.total)
+        return Status.DONE if self.ticks >= self.total else Status.RUNNING
+
+
+class AnchorParams(Params):
+    body: str
+    sites: list[Site]
+    at: TargetLike | None = None
+
+
+@register
+class Anchoring(Maneuver):
+    """Hold named sites of a rope or cloth where they are (or at ``at``)."""
+
+    name = "Anchoring"
+    Params = AnchorParams
+
+    def start(self) -> None:
+        idx = np.concatenate([self.world.site_particles(self.params.body, s) for s in self.params.sites])
+        x = self.world.positions()[idx]
+        if self.params.at is not None:
+            x = x - x.mean(axis=0) + resolve_target(self.world, self.params.at)
+        self.world.control.drive(idx, x)
+
+    def update(self) -> Status:
+        self.progress = 1.0
+        return Status.DONE
+
+
+class MoveParams(Params):
+    body: str
+    sites: list[Site]
+    to: TargetLike
+    via: list[TargetLike] = []
+    speed: Annotated[float, pydantic.Field(gt=0)] = 0.5
+    tolerance: Annotated[float, pydantic.Field(gt=0)] = 1e-3
+    hold: bool = True
+
+
+@register
+class MoveTo(Maneuver):
+    """Drive sites through intermediate targets to a target (paper Eq. 4).
+
+    The sites move as a rigid group: each frame their centroid advances at most
+    ``speed * dt`` towards the current waypoint; done when the last waypoint is
+    reached within ``tolerance``. With ``hold`` the sites stay driven after.
+    """
+
+    name = "MoveTo"
+    Params = MoveParams
+
+    def start(self) -> None:
+        p = self.params
+        self.idx = np.concatenate([self.world.site_particles(p.body, s) for s in p.sites])
+        x = self.world.positions()[self.idx].astype(np.float64)
+        self.offsets = x - x.mean(axis=0)
+        self.pos = x.mean(axis=0)
+        self.waypoints = [resolve_target(self.world, t) for t in [*p.via, p.to]]
+        self.leg = 0
+        self.total = sum(
+            np.linalg.norm(b - a) for a, b in zip([self.pos, *self.waypoints[:-1]], self.waypoints)
+        ) or 1.0
+        self.travelled = 0.0
+        self.world.control.drive(self.idx, self.pos + self.offsets)
+
+    def update(self) -> Status:
+        step = self.params.speed / self.world.fps
+        while step > 0 and self.leg < len(self.waypoints):
+            d = self.waypoints[self.leg] - self.pos
+            dist = float(np.linalg.norm(d))
+            if dist <= step:
+                self.pos = self.waypoints[self.leg].copy()
+                self.travelled += dist
+                step -= dist
+                self.leg += 1
+            else:
+                self.pos = self.pos + d * (step / dist)
+                self.travelled += step
+                step = 0.0
+        self.world.control.drive(self.idx, self.pos + self.offsets)
+        self.progress = min(1.0, self.travelled / self.total)
+        if self.leg >= len(self.waypoints):
+            x = self.world.positions()[self.idx].mean(axis=0)
+            if np.linalg.norm(x - self.waypoints[-1]) <= self.params.tolerance + step:
+                self.progress = 1.0
+                return Status.DONE
+        return Status.RUNNING
+
+    def stop(self) -> None:
+        if not self.params.hold:
+            self.world.control.release(self.idx)
+
+    def metrics(self) -> dict[str, float]:
+        return {"leg": self.leg, "distance_left": float(np.linalg.norm(self.waypoints[-1] - self.pos))}
+
+
+class ReleaseParams(Params):
+    body: str
+    sites: list[Site] = ["all"]
+
+
+@register
+class Release(Maneuver):
+    """Let sites of a rope or cloth move freely again."""
+
+    name = "Release"
+    Params = ReleaseParams
+
+    def start(self) -> None:
+        idx = np.concatenate([self.world.site_particles(self.params.body, s) for s in self.params.sites])
+        self.world.control.release(idx)
+
+    def update(self) -> Status:
+        self.progress = 1.0
+        return Status.DONE

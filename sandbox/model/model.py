@@ -1,0 +1,172 @@
+"""Model (static), State (changes every step) and Control (kinematic targets).
+
+A :class:`Model` is made once per level from :class:`ModelData`; ``state()``
+and ``control()`` allocate the per-run data. Fields are float32 on every
+backend.
+"""
+
+
+import numpy as np
+import taichi as ti
+
+from sandbox.model.builder import ModelData
+
+
+@ti.data_oriented
+class Model:
+    """Static particle data of a scene.
+
+    Fields (n particles, m distance constraints, s rope segments):
+        inv_mass: (n,) f32, 1/kg.
+        radius: (n,) f32, m; rope radius or half the cloth thickness.
+        friction: (n,) f32, Coulomb coefficient against ground and objects.
+        damping: (n,) f32, fraction of velocity lost per second.
+        cloth_id: (n,) i32, cloth index or -1 for ropes.
+        grid_ij: (n,) ivec2, cloth grid coordinates.
+        edge: (m,) ivec2, particle pairs sorted by colour.
+        rest: (m,) f32, m.
+        compliance: (m,) f32, m/N (XPBD alpha).
+        kind: (m,) i32, STRETCH | SHEAR | BEND.
+        group: (m,) i32, body index of each edge (for strain metrics).
+        segment: (s,) ivec2, rope segments; segment_rope: (s,) i32.
+    """
+
+    def __init__(self, data: ModelData) -> None:
+        self.data = data
+        n, m, s = data.n_particles, len(data.edges), len(data.segments)
+        self.n, self.m, self.s = n, m, s
+        self.n_bodies = len(data.ropes) + len(data.cloths)
+        self.colors = data.colors
+        self.x0 = np.asarray(data.x0, np.float32)
+        self.inv_mass = ti.field(ti.f32, shape=n)
+        self.radius = ti.field(ti.f32, shape=n)
+        self.friction = ti.field(ti.f32, shape=n)
+        self.damping = ti.field(ti.f32, shape=n)
+        self.cloth_id = ti.field(ti.i32, shape=n)
+        self.grid_ij = ti.Vector.field(2, ti.i32, shape=n)
+        self.inv_mass.from_numpy(data.inv_mass.astype(np.float32))
+        self.radius.from_numpy(data.radius.astype(np.float32))
+        self.friction.from_numpy(data.friction.astype(np.float32))
+        self.damping.from_numpy(data.damping.astype(np.float32))
+        self.cloth_id.from_numpy(data.cloth_id.astype(np.int32))
+        self.grid_ij.from_numpy(data.grid_ij.astype(np.int32))
+        mm = max(m, 1)
+        self.edge = ti.Vector.field(2, ti.i32, shape=mm)
+        self.rest = ti.field(ti.f32, shape=mm)
+        self.compliance = ti.field(ti.f32, shape=mm)
+        self.kind = ti.field(ti.i32, shape=mm)
+        self.group = ti.field(ti.i32, shape=mm)
+        if m:
+            self.edge.from_numpy(data.edges.astype(np.int32))
+            self.rest.from_numpy(data.rest.astype(np.float32))
+            self.compliance.from_numpy(data.compliance.astype(np.float32))
+            self.kind.from_numpy(data.kind.astype(np.int32))
+            self.group.from_numpy(data.group.astype(np.int32))
+        ss = max(s, 1)
+        self.segment = ti.Vector.field(2, ti.i32, shape=ss)
+        self.segment_rope = ti.field(ti.i32, shape=ss)
+        if s:
+            self.segment.from_numpy(data.segments.astype(np.int32))
+            self.segment_rope.from_numpy(data.segment_rope.astype(np.int32))
+        self.max_thickness = max([c.thickness for c in data.cloths], default=0.0)
+        self.self_collision = any(c.self_collision for c in data.cloths)
+
+    def state(self) -> "State":
+        """A new State at the rest configuration, at rest."""
+        st = State(self.n, self.m)
+        st.x.from_numpy(self.x0)
+        return st
+
+    def control(self) -> "Control":
+        """A new Control with the model's pins held at their rest positions."""
+        ctl = Control(self.n, self.x0)
+        if len(self.data.pins):
+            ctl.drive(self.data.pins, self.x0[self.data.pins])
+        return ctl
+
+
+@ti.data_oriented
+class State:
+    """Positions and velocities.
+
+    Fields:
+        x: (n,) vec3 f32, m.
+        v: (n,) vec3 f32, m/s.
+        x_prev: (n,) vec3 f32, m, positions at the start of the substep.
+        dx: (n,) vec3 f32, m, Jacobi correction accumulator.
+        lam: (m,) f32, XPBD multipliers of the distance constraints.
+    """
+
+    def __init__(self, n: int, m: int) -> None:
+        self.n = n
+        self.x = ti.Vector.field(3, ti.f32, shape=n)
+        self.v = ti.Vector.field(3, ti.f32, shape=n)
+        self.x_prev = ti.Vector.field(3, ti.f32, shape=n)
+        self.dx = ti.Vector.field(3, ti.f32, shape=n)
+        self.lam = ti.field(ti.f32, shape=max(m, 1))
+
+    def save(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copy of (x, v) for rollback."""
+        return self.x.to_numpy(), self.v.to_numpy()
+
+    def restore(self, snap: tuple[np.ndarray, np.ndarray]) -> None:
+        """Restore a copy made by :meth:`save`."""
+        self.x.from_numpy(snap[0])
+        self.v.from_numpy(snap[1])
+
+
+@ti.data_oriented
+class Control:
+    """Kinematic targets written by maneuvers (paper Eq. 4).
+
+    A driven particle moves on a straight line from ``src`` (its position at
+    the start of the frame) to ``dst`` during the frame's substeps and has no
+    inverse mass for the solver. Maneuvers pass intermediate targets, so
+    ``dst`` is never far away.
+
+    Fields:
+        driven: (n,) i32, 1 if kinematic.
+        src, dst: (n,) vec3 f32, m.
+    """
+
+    def __init__(self, n: int, x0: np.ndarray) -> None:
+        self.n = n
+        self.driven = ti.field(ti.i32, shape=n)
+        self.src = ti.Vector.field(3, ti.f32, shape=n)
+        self.dst = ti.Vector.field(3, ti.f32, shape=n)
+        self._driven = np.zeros(n, np.int32)
+        self._dst = np.asarray(x0, np.float32).copy()
+        self._dirty = True
+
+    def drive(self, idx, targets) -> None:
+        """Drive particles ``idx`` to ``targets`` (m) by the end of the next frame."""
+        idx = np.atleast_1d(np.asarray(idx, np.int64))
+        self._driven[idx] = 1
+        self._dst[idx] = np.asarray(targets, np.float32).reshape(len(idx), 3)
+        self._dirty = True
+
+    def release(self, idx) -> None:
+        """Let particles ``idx`` move freely again."""
+        self._driven[np.atleast_1d(np.asarray(idx, np.int64))] = 0
+        self._dirty = True
+
+    def is_driven(self, idx) -> np.ndarray:
+        """Whether particles ``idx`` are kinematic."""
+        return self._driven[np.asarray(idx)].astype(bool)
+
+    def target(self, idx) -> np.ndarray:
+        """Current targets of particles ``idx`` (m)."""
+        return self._dst[np.asarray(idx)].copy()
+
+    @property
+    def driven_indices(self) -> np.ndarray:
+        return np.flatnonzero(self._driven)
+
+    def upload(self) -> bool:
+        """Send changed targets to the device; True if anything changed."""
+        if not self._dirty:
+            return False
+        self.driven.from_numpy(self._driven)
+        self.dst.from_numpy(self._dst)
+        self._dirty = False
+        return True

@@ -1,0 +1,286 @@
+"""The World: one level's scene, solver, FSM and metrics, stepped frame by frame.
+
+``World`` is what maneuvers see (``world`` in :mod:`sandbox.maneuvers.base`):
+named ropes, cloths and objects, the Control they write, and read-back of
+positions. :class:`sandbox.api.Sandbox` wraps it for hosts.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import time
+
+import numpy as np
+
+from sandbox import runtime
+from sandbox.model.builder import ClothRange, ModelBuilder, RopeRange
+from sandbox.model.pose import euler_matrix, keyframe_pose
+
+
+class SimulationUnstable(RuntimeError):
+    """The step kept producing NaN or exploding velocities after every retry."""
+
+
+class World:
+    """A running level.
+
+    Args:
+        level: a validated ``sandbox.levels.schema.Level``.
+        base_dir: folder of the level file (for mesh assets).
+        arch: Taichi backend; None uses the level's ``sim.arch``.
+    """
+
+    def __init__(self, level, *, base_dir: pathlib.Path | None = None, arch: str | None = None) -> None:
+        self.level = level
+        self.base_dir = pathlib.Path(base_dir) if base_dir is not None else pathlib.Path.cwd()
+        self.arch = runtime.init(arch or level.sim.arch)
+        sim = level.sim
+        self.fps = int(sim.fps)
+        self.dt = 1.0 / self.fps
+        self.substeps = int(sim.substeps)
+        self.iterations = int(sim.iterations)
+        self.max_retries = int(sim.max_retries)
+        self.explode_speed = 200.0  # m/s: faster than anything a level should do
+        scene = level.scene
+        self.ground_height = None if scene.ground is None else float(scene.ground.height)
+
+        from sandbox.model.model import Model
+        from sandbox.solvers.xpbd import XPBDSolver
+
+        builder = ModelBuilder()
+        for spec in scene.ropes:
+            builder.add_rope(spec)
+        for spec in scene.cloths:
+            builder.add_cloth(spec)
+        self.data = builder.finalize_data()
+        self.ropes: dict[str, RopeRange] = {r.name: r for r in self.data.ropes}
+        self.cloths: dict[str, ClothRange] = {c.name: c for c in self.data.cloths}
+        self.objects = self._build_objects(scene.objects)
+        self.object_specs = {o.name: o for o in scene.objects}
+        self.model = Model(self.data)
+        self.state = self.model.state()
+        self.control = self.model.control()
+        ground = None if scene.ground is None else (float(scene.ground.height), float(scene.ground.friction))
+        self.solver = XPBDSolver(
+            self.model, self.state, self.control, gravity=scene.gravity, ground=ground,
+            objects=self.objects, iterations=self.iterations,
+        )
+        self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
+        self.frame = 0
+        self.ticks = 0
+        self.time = 0.0
+        self.retries_total = 0
+        self.last_retries = 0
+        self.systems_ms: dict[str, float] = {}
+        self.stage_ms: dict[str, float] = {}
+        self.profile_every = 0  # frames; 0 = never run the per-pass profile
+        self.fsm = None
+        self.run_max = {"strain": {}, "penetration": {}}
+
+    # ----------------------------------------------------------- building
+    def _build_objects(self, specs):
+        if not specs:
+            return None
+        from sandbox.collision.sdf import ObjectInstance, ObjectSet
+        from sandbox.objects.builders import build_mesh
+
+        inst = []
+        for o in specs:
+            mesh = build_mesh(o.shape, dict(o.params), base_dir=self.base_dir)
+            pos, rot = np.asarray(o.position, float), euler_matrix(o.rotation)
+            if o.motion is not None:
+                pos, rot = keyframe_pose(o.motion, 0.0)
+            inst.append(ObjectInstance(o.name, o.shape, dict(o.params), mesh, pos, rot, float(o.friction)))
+        return ObjectSet(inst)
+
+    def attach_fsm(self) -> None:
+        """Create the FSM runner (after the maneuvers are registered)."""
+        from sandbox.levels.fsm import FSMRunner
+
+        self.fsm = FSMRunner(self.level, self)
+
+    # ---------------------------------------------------------- read-back
+    def rope_positions(self, name: str) -> np.ndarray:
+        r = self._rope(name)
+        return self.state.x.to_numpy()[r.start : r.end]
+
+    def cloth_positions(self, name: str) -> np.ndarray:
+        c = self._cloth(name)
+        return self.state.x.to_numpy()[c.start : c.end]
+
+    def positions(self) -> np.ndarray:
+        """All particle positions (n, 3) float32, m."""
+        return self.state.x.to_numpy()
+
+    def velocities(self) -> np.ndarray:
+        """All particle velocities (n, 3) float32, m/s."""
+        return self.state.v.to_numpy()
+
+    def _rope(self, name: str) -> RopeRange:
+        if name not in self.ropes:
+            raise KeyError(f"no rope named {name!r}; ropes: {', '.join(self.ropes) or '(none)'}")
+        return self.ropes[name]
+
+    def _cloth(self, name: str) -> ClothRange:
+        if name not in self.cloths:
+            raise KeyError(f"no cloth named {name!r}; cloths: {', '.join(self.cloths) or '(none)'}")
+        return self.cloths[name]
+
+    def object_index(self, name: str) -> int:
+        if self.objects is None or name not in self.object_specs:
+            raise KeyError(f"no object named {name!r}; objects: {', '.join(self.object_specs) or '(none)'}")
+        return self.objects.index(name)
+
+    def site_particles(self, body: str, site) -> np.ndarray:
+        """Global particle indices of a named site of a rope or cloth.
+
+        Rope sites: ``start``, ``end``, an index, or ``[i0, i1]`` (a range, end
+        exclusive). Cloth sites: a corner ``A``-``D``, ``center``, ``[i, j]``,
+        or ``line1``-``line4`` (a control line).
+        """
+        if body in self.ropes:
+            r = self.ropes[body]
+            k = r.end - r.start
+            if site == "start":
+                return np.array([r.start])
+            if site == "end":
+                return np.array([r.end - 1])
+            if site == "all":
+                return np.arange(r.start, r.end)
+            if isinstance(site, (list, tuple)) and len(site) == 2:
+                lo, hi = (int(s) % (k + 1) if int(s) < 0 else int(s) for s in site)
+                if not 0 <= lo < hi <= k:
+                    raise ValueError(f"rope {body!r}: range {list(site)} not inside [0, {k}]")
+                return np.arange(r.start + lo, r.start + hi)
+            i = int(site)
+            if not -k <= i < k:
+                raise ValueError(f"rope {body!r}: index {i} outside [-{k}, {k - 1}]")
+            return np.array([r.start + i % k])
+        if body in self.cloths:
+            c = self.cloths[body]
+            if isinstance(site, str) and site.startswith("line"):
+                return c.control_line(int(site[4:]))
+            if site == "all":
+                return np.arange(c.start, c.end)
+            return np.array([c.site(site)])
+        raise KeyError(f"no rope or cloth named {body!r}; ropes: {', '.join(self.ropes) or '(none)'}; "
+                       f"cloths: {', '.join(self.cloths) or '(none)'}")
+
+    # ------------------------------------------------------------- stepping
+    def _move_objects(self, t: float, dt: float) -> None:
+        for k in self.moving:
+            pos, rot = keyframe_pose(self.level.scene.objects[k].motion, t)
+            self.objects.set_pose(k, pos, rot, dt)
+
+    def _physics(self, substeps: int, profile: bool) -> None:
+        dt = self.dt / substeps
+        self.solver.begin_frame()
+        if profile:
+            self.solver.timings = {}
+        for k in range(substeps):
+            if self.moving:
+                self._move_objects(self.time + (k + 1) * dt, dt)
+            if profile:
+                self.solver.profile_substep(dt, (k + 1) / substeps)
+            else:
+                self.solver.substep(dt, (k + 1) / substeps)
+        if profile:
+            self.stage_ms = dict(self.solver.timings)
+
+    def step_physics(self) -> dict:
+        """Advance the physics one frame, rolling back and retrying on blow-up.
+
+        Each retry doubles the substeps. Raises :class:`SimulationUnstable`
+        after ``sim.max_retries`` failed retries (the state is left at the
+        start of the frame, which is valid).
+        """
+        snap = self.state.save()
+        obj_snap = [self.objects.pose(k) for k in self.moving] if self.moving else []
+        substeps = self.substeps
+        profile = self.profile_every > 0 and self.frame % self.profile_every == 0
+        self.last_retries = 0
+        for attempt in range(self.max_retries + 1):
+            self._physics(substeps, profile)
+            m = self.solver.measure()
+            vmax = float(np.sqrt((self.state.v.to_numpy() ** 2).sum(axis=1).max())) if not m["nan"] else np.inf
+            if not m["nan"] and vmax < self.explode_speed:
+                self.frame += 1
+                self.time = self.frame * self.dt
+                m["vmax"] = vmax
+                return m
+            self.state.restore(snap)
+            for (k, (p, r)) in zip(self.moving, obj_snap):
+                self.objects.place(k, p, r)
+            self.last_retries += 1
+            self.retries_total += 1
+            substeps *= 2
+        raise SimulationUnstable(
+            f"frame {self.frame}: NaN or speed above {self.explode_speed:g} m/s after "
+            f"{self.max_retries} retries (up to {substeps // 2} substeps); last good state kept"
+        )
+
+    def step(self) -> dict:
+        """One frame: physics (with rollback), FSM tick, metrics. Returns the frame's metrics."""
+        t0 = time.perf_counter()
+        m = self.step_physics()
+        t1 = time.perf_counter()
+        if self.fsm is not None and not self.fsm.finished:
+            self.fsm.tick()
+        t2 = time.perf_counter()
+        self.ticks += 1
+        row = self._frame_metrics(m)
+        t3 = time.perf_counter()
+        self.systems_ms = {"physics": 1e3 * (t1 - t0), "fsm": 1e3 * (t2 - t1), "metrics": 1e3 * (t3 - t2)}
+        row["ms"] = {k: round(v, 3) for k, v in self.systems_ms.items()}
+        if self.stage_ms and self.profile_every and (self.frame - 1) % self.profile_every == 0:
+            row["stage_ms"] = {k: round(v, 3) for k, v in self.stage_ms.items()}
+        return row
+
+    # -------------------------------------------------------------- metrics
+    def _frame_metrics(self, m: dict) -> dict:
+        strain = {}
+        pen = {}
+        depth = m["depth"]
+        bodies = list(self.ropes.values()) + list(self.cloths.values())
+        for b, body in enumerate(bodies):
+            strain[body.name] = float(m["strain"][b])
+            pen[body.name] = float(depth[body.start : body.end].max()) if body.end > body.start else 0.0
+        if self.solver.ropecol is not None:
+            gap = self.solver.ropecol.measure()
+            seg_rope = self.data.segment_rope
+            for r_i, r in enumerate(self.data.ropes):
+                g = gap[seg_rope == r_i]
+                pen[r.name] = max(pen[r.name], float(max(0.0, -g.min())) if len(g) else 0.0)
+        for name, v in strain.items():
+            self.run_max["strain"][name] = max(self.run_max["strain"].get(name, 0.0), v)
+        for name, v in pen.items():
+            self.run_max["penetration"][name] = max(self.run_max["penetration"].get(name, 0.0), v)
+        row = {
+            "frame": self.frame,
+            "time": round(self.time, 6),
+            "strain": strain,
+            "penetration": pen,
+            "max_speed": m["vmax"],
+            "retries": self.last_retries,
+        }
+        if self.fsm is not None:
+            row["fsm_state"] = self.fsm.state
+            row["progress"] = float(self.fsm.progress)
+            man = self.fsm.maneuver
+            if man is not None:
+                row["maneuver"] = man.metrics()
+        return row
+
+    def body_scale(self, name: str) -> float:
+        """Length scale of a body for relative penetration: rope radius or cloth thickness (m)."""
+        if name in self.ropes:
+            return self.ropes[name].radius
+        return self._cloth(name).thickness
+
+    def pin_drift(self) -> float:
+        """Largest distance of a driven particle from its target at frame end (m)."""
+        idx = self.control.driven_indices
+        if len(idx) == 0:
+            return 0.0
+        x = self.state.x.to_numpy()[idx]
+        return float(np.linalg.norm(x - self.control.target(idx), axis=1).max())
