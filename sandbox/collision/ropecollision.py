@@ -4,8 +4,8 @@ Segments are binned by midpoint in a hash with cells of (rod length + two
 radii), so every pair that can touch is in the 27 neighbouring cells. Each
 segment gathers the XPBD correction of its own two end points from all its
 contacts; each particle then averages what its one or two segments gathered.
-Same-rope pairs must be at least two segments apart (they share no particle
-and adjacent capsules overlap by construction).
+Same-rope pairs must be at least max(2, ceil(1 + 2 radius / rod)) segments
+apart: closer ones share a particle or overlap at rest (thick ropes).
 """
 
 
@@ -39,6 +39,11 @@ class RopeCollision:
         rod = np.array([r.rod_length for r in d.ropes])
         self.cell = float(rod.max() + 2.0 * rad.max())
         self.grid = HashGrid(s, self.cell)
+        # Segments i and i + k of a straight rope are (k - 1) rods apart: pairs
+        # closer in index than 1 + 2 radius / rod would touch at rest.
+        skip = np.maximum(2, np.ceil(1.0 + 2.0 * rad / rod - 1e-9)).astype(np.int32)
+        self.skip = ti.field(ti.i32, shape=len(skip))
+        self.skip.from_numpy(skip)
         self.mid = ti.Vector.field(3, ti.f32, shape=s)
         self.d0 = ti.Vector.field(3, ti.f32, shape=s)
         self.d1 = ti.Vector.field(3, ti.f32, shape=s)
@@ -69,8 +74,9 @@ class RopeCollision:
     @ti.func
     def _pair_ok(self, s, t):
         ok = s != t
-        if self.model.segment_rope[s] == self.model.segment_rope[t]:
-            if ti.abs(s - t) < 2:
+        r = self.model.segment_rope[s]
+        if r == self.model.segment_rope[t]:
+            if ti.abs(s - t) < self.skip[r]:
                 ok = False
         return ok
 

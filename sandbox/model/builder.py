@@ -43,6 +43,7 @@ class ClothRange:
     color: tuple[float, float, float]
     back_color: tuple[float, float, float]
     self_collision: bool
+    stretch_compliance: float = 0.0  # m/N; 0 = rows and columns are exact chains
 
     @property
     def end(self) -> int:
@@ -95,7 +96,7 @@ class ModelData:
     compliance: np.ndarray  # (m,) m/N
     kind: np.ndarray  # (m,) STRETCH | SHEAR | BEND
     group: np.ndarray  # (m,) body index (ropes first, then cloths)
-    colors: list[tuple[int, int]]  # edge ranges [start, end) of each colour
+    colors: list[tuple[int, int]]  # edge ranges [start, end) of each colour (solved edges only)
     segments: np.ndarray  # (s, 2) rope segments (consecutive particles)
     segment_rope: np.ndarray  # (s,) rope index of each segment
     pins: np.ndarray  # (p,) particle indices pinned at build
@@ -163,6 +164,7 @@ class ModelBuilder:
         self._rest: list[np.ndarray] = []
         self._comp: list[np.ndarray] = []
         self._kind: list[np.ndarray] = []
+        self._solve: list[np.ndarray] = []
         self._group: list[np.ndarray] = []
         self._segments: list[np.ndarray] = []
         self._seg_rope: list[np.ndarray] = []
@@ -173,6 +175,9 @@ class ModelBuilder:
         self._bodies = 0
 
     def _add_edges(self, e, rest, comp, kind):
+        # Stretch edges of inextensible bodies are solved exactly as chains
+        # (sandbox.solvers.rope_chain); they stay here for strain metrics only.
+        self._solve.append(np.full(len(e), not (kind == STRETCH and comp == 0.0)))
         self._edges.append(e)
         self._rest.append(rest)
         self._comp.append(np.full(len(e), comp, dtype=np.float64))
@@ -262,7 +267,7 @@ class ModelBuilder:
         ).astype(np.int32)
         cloth = ClothRange(
             spec.name, start, nx, nz, (dx, dz), thickness, faces, tuple(spec.color), tuple(spec.back_color),
-            bool(spec.self_collision),
+            bool(spec.self_collision), float(spec.stretch_compliance),
         )
         self._pins.extend(cloth.site(p) for p in spec.pins)
         self.cloths.append(cloth)
@@ -279,12 +284,17 @@ class ModelBuilder:
         comp = np.concatenate(self._comp) if self._comp else np.zeros(0)
         kind = np.concatenate(self._kind) if self._kind else np.zeros(0, np.int64)
         group = np.concatenate(self._group) if self._group else np.zeros(0, np.int64)
-        col = greedy_edge_colors(edges, self.n) if len(edges) else np.zeros(0, np.int64)
+        solve = np.concatenate(self._solve) if self._solve else np.zeros(0, bool)
+        col = np.full(len(edges), -1, np.int64)
+        if solve.any():
+            col[solve] = greedy_edge_colors(edges[solve], self.n)
+        n_colors = int(col.max()) + 1 if len(col) else 0
+        col[~solve] = n_colors  # metric-only edges sort last, outside every colour
         order = np.argsort(col, kind="stable")
         ranges = []
-        counts = np.bincount(col, minlength=int(col.max()) + 1 if len(col) else 0)
+        counts = np.bincount(col, minlength=n_colors + 1)
         s = 0
-        for c in counts:
+        for c in counts[:n_colors]:
             ranges.append((s, s + int(c)))
             s += int(c)
         segs = np.concatenate(self._segments) if self._segments else np.zeros((0, 2), np.int64)

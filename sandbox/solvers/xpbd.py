@@ -7,7 +7,8 @@ Per substep (each pass O(n) in particles or constraints):
 3. distance constraints (rods Eq. 2, bending Eq. 3, cloth edges), graph
    coloured Gauss-Seidel: each colour is one parallel loop with disjoint
    writes, so the result does not depend on thread order -- O(m)
-4. exact rope inextensibility: a tridiagonal Newton step per rope -- O(k)
+4. exact inextensibility of ropes and cloth rows/columns: a tridiagonal
+   Newton step per chain (``rope_chain.py``) -- O(n)
 5. rope capsule-capsule collisions (Eq. 5), Jacobi gather -- O(s k), k
    candidates per segment (bounded by the hash cell occupancy)
 6. cloth self-collision, Jacobi gather over the 27 neighbouring cells,
@@ -27,12 +28,12 @@ import time
 import numpy as np
 import taichi as ti
 
-from sandbox.collision.contacts import friction_correction, plane_contact
+from sandbox.collision.contacts import friction_velocity, plane_push
 from sandbox.collision.ropecollision import RopeCollision
 from sandbox.collision.selfcollision import ClothSelfCollision
 from sandbox.constraints.distance import xpbd_distance
 from sandbox.model.model import Control, Model, State
-from sandbox.solvers.rope_chain import RopeInextensibility
+from sandbox.solvers.rope_chain import ChainProjection, build_chains
 
 PREDICT, SELF_HASH, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT = range(9)
 STAGE_NAMES = {
@@ -44,7 +45,7 @@ STAGE_NAMES = {
     SELF_COLLIDE: "self_collision",
     CONTACTS: "contacts",
     VELOCITIES: "velocities",
-    ROPE_INEXT: "rope_inextensibility",
+    ROPE_INEXT: "chains",
 }
 
 
@@ -64,7 +65,11 @@ class XPBDSolver:
     Fields:
         w: (n,) f32, 1/kg, inverse mass for this frame (0 while driven).
         depth: (n,) f32, m, penetration into ground/objects (metrics).
-        strain: (bodies,) f32, max relative stretch of each rope/cloth.
+        strain: (bodies,) f32, max |l - r| / r of each rope's rods; max
+            (l - r) / r (stretch) of each cloth's structural edges.
+        c_normal, c_dv, c_vel: (n,) contact normal, friction budget (m/s) and
+            surface velocity (m/s) of this substep's contacts, used by the
+            velocity pass.
     """
 
     def __init__(self, model: Model, state: State, control: Control, *, gravity, ground=None, objects=None,
@@ -82,12 +87,20 @@ class XPBDSolver:
         self.w = ti.field(ti.f32, shape=model.n)
         self.depth = ti.field(ti.f32, shape=model.n)
         self.strain = ti.field(ti.f32, shape=max(model.n_bodies, 1))
+        # Rods of ropes must keep their length both ways; cloth may buckle
+        # (compressed edges in folds), so only its stretch counts as strain.
+        self.stretch_only = ti.field(ti.i32, shape=max(model.n_bodies, 1))
+        self.stretch_only.from_numpy(np.array(
+            [0] * len(model.data.ropes) + [1] * len(model.data.cloths) + [0] * (model.n_bodies == 0), np.int32))
+        if self.has_ground or self.has_objects:
+            self.c_normal = ti.Vector.field(3, ti.f32, shape=model.n)
+            self.c_dv = ti.field(ti.f32, shape=model.n)
+            self.c_vel = ti.Vector.field(3, ti.f32, shape=model.n)
         cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
         self.ropecol = RopeCollision(model, state, self.w) if model.s >= 3 else None
-        self.inext = RopeInextensibility(model, state, self.w) if model.s else None
-        if self.inext is not None and self.inext.n_ropes == 0:
-            self.inext = None
+        groups = build_chains(model.data)
+        self.inext = ChainProjection(model, state, self.w, groups) if groups else None
         pre = [PREDICT]
         if self.selfcol is not None:
             pre.append(SELF_HASH)
@@ -96,6 +109,8 @@ class XPBDSolver:
         it = []
         if self.colors:
             it.append(CONSTRAINTS)
+        if self.has_ground or self.has_objects:
+            it.append(CONTACTS)
         if self.inext is not None:
             it.append(ROPE_INEXT)
         if self.ropecol is not None:
@@ -103,7 +118,7 @@ class XPBDSolver:
         if self.selfcol is not None:
             it.append(SELF_COLLIDE)
         if self.has_ground or self.has_objects:
-            it.append(CONTACTS)
+            it.append(CONTACTS)  # again: contacts have the last word in every iteration
         self.stages = tuple(pre + it * self.iterations + [VELOCITIES])
         self.timings: dict[str, float] = {}
 
@@ -149,21 +164,32 @@ class XPBDSolver:
                 r = mdl.radius[i]
                 mu_p = mdl.friction[i]
                 if ti.static(self.has_ground):
-                    x = plane_contact(x, st.x_prev[i], r, gh, 0.5 * (mu_p + gmu), dt)
+                    x, pen = plane_push(x, r, gh)
+                    if pen > 0.0:
+                        self.c_normal[i] = ti.math.vec3(0.0, 1.0, 0.0)
+                        self.c_dv[i] = ti.max(self.c_dv[i], 0.5 * (mu_p + gmu) * pen / dt)
+                        self.c_vel[i] = ti.math.vec3(0.0)
                 if ti.static(self.has_objects):
                     d, n, k = self.objects.query(x)
                     pen = r - d
                     if pen > 0.0:
                         x += pen * n
                         mu = 0.5 * (mu_p + self.objects.friction(k))
-                        x += friction_correction(x, st.x_prev[i], n, pen, mu, self.objects.velocity_at(k, x), dt)
+                        self.c_normal[i] = n
+                        self.c_dv[i] = ti.max(self.c_dv[i], mu * pen / dt)
+                        self.c_vel[i] = self.objects.velocity_at(k, x)
                 st.x[i] = x
 
     @ti.func
     def _velocities(self, inv_dt: ti.f32):
         st = self.st
         for i in st.x:
-            st.v[i] = (st.x[i] - st.x_prev[i]) * inv_dt
+            v = (st.x[i] - st.x_prev[i]) * inv_dt
+            if ti.static(self.has_ground or self.has_objects):
+                if self.c_dv[i] > 0.0:
+                    v = friction_velocity(v, self.c_normal[i], self.c_dv[i], self.c_vel[i])
+                    self.c_dv[i] = 0.0
+            st.v[i] = v
 
     @ti.func
     def _stage(self, sid: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
@@ -213,8 +239,11 @@ class XPBDSolver:
             if mdl.kind[e] == 0 and mdl.rest[e] > 0.0:
                 a = mdl.edge[e][0]
                 b = mdl.edge[e][1]
-                s = ti.abs((st.x[a] - st.x[b]).norm() - mdl.rest[e]) / mdl.rest[e]
-                ti.atomic_max(self.strain[mdl.group[e]], s)
+                g = mdl.group[e]
+                s = ((st.x[a] - st.x[b]).norm() - mdl.rest[e]) / mdl.rest[e]
+                if self.stretch_only[g]:
+                    s = ti.max(s, 0.0)
+                ti.atomic_max(self.strain[g], ti.abs(s))
         for i in st.x:
             x = st.x[i]
             if x.norm() < 1e6:  # false for NaN and inf as well
