@@ -52,6 +52,7 @@ class ClothSelfCollision:
         """One Jacobi pass of self-collision."""
         for k in range(self.count):
             acc = ti.math.vec3(0.0)
+            cnt = 0
             wi = self.wall[self.start + k]
             if wi > 0.0:
                 i = self.start + k
@@ -71,7 +72,10 @@ class ClothSelfCollision:
                                 wsum = wi + self.wall[j]
                                 if dist < target and dist > 1e-9:
                                     acc += (wi / wsum) * (target - dist) / dist * d
-            self.dx[k] = acc
+                                    cnt += 1
+            # Averaged Jacobi: a particle squeezed by many neighbours moves by
+            # their mean push, not their sum (which overshoots and injects energy).
+            self.dx[k] = acc / ti.max(cnt, 1)
         for k in range(self.count):
             i = self.start + k
             self.st.x[i] = self.st.x[i] + self.dx[k]

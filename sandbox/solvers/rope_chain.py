@@ -10,6 +10,12 @@ Tension then crosses a whole rope or cloth row in one pass instead of one
 rod per Gauss-Seidel sweep, which is what keeps hanging ropes and cloth
 within a fraction of a percent of their length.
 
+Particles that touched the ground or an object in this substep may not move
+along their contact normal: their inverse mass becomes w (I - n n^T). The
+chain then slides over a surface instead of being pulled through it and
+pushed back out, which would otherwise lock a chain draped over a sharp edge
+in a stretched state. The system stays tridiagonal and scalar.
+
 Chains are grouped so that no two chains of a group share a particle (ropes
 and cloth rows in one group, cloth columns in another); the chains of a
 group run in parallel, each one serially, and the groups run one after the
@@ -52,10 +58,13 @@ class ChainProjection:
         cp, dp: (L,) f32, Thomas algorithm scratch.
     """
 
-    def __init__(self, model, state, w, groups: list[list[np.ndarray]]) -> None:
+    def __init__(self, model, state, w, groups: list[list[np.ndarray]], contact=None, normal=None) -> None:
         self.model = model
         self.st = state
         self.w = w
+        self.has_contacts = contact is not None
+        self.contact = contact  # (n,) f32 > 0 where the particle touched a surface this substep
+        self.normal = normal  # (n,) vec3 contact normals
         x0 = model.data.x0
         a, b, lo, hi = [], [], [], []
         self.group_ranges = []
@@ -87,10 +96,29 @@ class ChainProjection:
         self.dp = ti.field(ti.f32, shape=n_links)
 
     @ti.func
+    def _wdot(self, i, u, v):
+        """u^T W_i v with W_i = w_i (I - n n^T) for a particle in contact."""
+        r = self.w[i] * u.dot(v)
+        if ti.static(self.has_contacts):
+            if self.contact[i] > 0.0:
+                n = self.normal[i]
+                r = self.w[i] * (u.dot(v) - u.dot(n) * v.dot(n))
+        return r
+
+    @ti.func
+    def _wapply(self, i, u):
+        """W_i u."""
+        r = self.w[i] * u
+        if ti.static(self.has_contacts):
+            if self.contact[i] > 0.0:
+                n = self.normal[i]
+                r = self.w[i] * (u - u.dot(n) * n)
+        return r
+
+    @ti.func
     def _chain(self, c):
         """Solve one chain: build rows, forward-eliminate, back-substitute, scatter."""
         x = ti.static(self.st.x)
-        w = ti.static(self.w)
         lo = self.lo[c]
         hi = self.hi[c]
         for j in range(lo, hi):
@@ -102,24 +130,25 @@ class ChainProjection:
             if length > 1e-12:
                 n = dv / length
             self.nrm[j] = n
-            diag = w[a] + w[b]
+            diag = self._wdot(a, n, n) + self._wdot(b, n, n)
             rhs = -(length - self.rest[j])
-            sub = 0.0  # A[j, j-1] = -w_a n_{j-1} . n_j
+            sub = 0.0  # A[j, j-1] = -n_{j-1}^T W_a n_j
             if j > lo:
-                sub = -w[a] * self.nrm[j - 1].dot(n)
-            if diag <= 1e-12:  # both ends immovable: the row is inert
+                sub = -self._wdot(a, self.nrm[j - 1], n)
+            inert = diag <= 1e-9 * (self.w[a] + self.w[b] + 1e-30)
+            if inert:  # both ends immovable along the rod: the row is inert
                 diag = 1.0
                 rhs = 0.0
                 sub = 0.0
             if j > lo:
                 diag = diag - sub * self.cp[j - 1]
                 rhs = rhs - sub * self.dp[j - 1]
-            sup = 0.0  # A[j, j+1] = -w_b n_j . n_{j+1}
-            if j + 1 < hi and w[a] + w[b] > 1e-12:
+            sup = 0.0  # A[j, j+1] = -n_j^T W_b n_{j+1}
+            if j + 1 < hi and not inert:
                 dn = x[self.link_b[j + 1]] - x[b]
                 ln = dn.norm()
                 if ln > 1e-12:
-                    sup = -w[b] * n.dot(dn / ln)
+                    sup = -self._wdot(b, n, dn / ln)
             self.cp[j] = sup / diag
             self.dp[j] = rhs / diag
         for jj in range(lo, hi):
@@ -130,8 +159,8 @@ class ChainProjection:
             a = self.link_a[j]
             b = self.link_b[j]
             lam = self.dp[j]
-            x[a] = x[a] - w[a] * lam * self.nrm[j]
-            x[b] = x[b] + w[b] * lam * self.nrm[j]
+            x[a] = x[a] - lam * self._wapply(a, self.nrm[j])
+            x[b] = x[b] + lam * self._wapply(b, self.nrm[j])
 
     @ti.func
     def solve_f(self):

@@ -67,9 +67,9 @@ class XPBDSolver:
         depth: (n,) f32, m, penetration into ground/objects (metrics).
         strain: (bodies,) f32, max |l - r| / r of each rope's rods; max
             (l - r) / r (stretch) of each cloth's structural edges.
-        c_normal, c_dv, c_vel: (n,) contact normal, friction budget (m/s) and
-            surface velocity (m/s) of this substep's contacts, used by the
-            velocity pass.
+        c_normal, c_dv, c_vel, c_hit: (n,) contact normal, friction budget
+            (m/s), surface velocity (m/s) and contact flag of this substep's
+            contacts, used by the chains and the velocity pass.
     """
 
     def __init__(self, model: Model, state: State, control: Control, *, gravity, ground=None, objects=None,
@@ -96,11 +96,13 @@ class XPBDSolver:
             self.c_normal = ti.Vector.field(3, ti.f32, shape=model.n)
             self.c_dv = ti.field(ti.f32, shape=model.n)
             self.c_vel = ti.Vector.field(3, ti.f32, shape=model.n)
+            self.c_hit = ti.field(ti.f32, shape=model.n)
         cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
         self.ropecol = RopeCollision(model, state, self.w) if model.s >= 3 else None
         groups = build_chains(model.data)
-        self.inext = ChainProjection(model, state, self.w, groups) if groups else None
+        contact = (self.c_hit, self.c_normal) if (self.has_ground or self.has_objects) else (None, None)
+        self.inext = ChainProjection(model, state, self.w, groups, *contact) if groups else None
         pre = [PREDICT]
         if self.selfcol is not None:
             pre.append(SELF_HASH)
@@ -167,6 +169,7 @@ class XPBDSolver:
                     x, pen = plane_push(x, r, gh)
                     if pen > 0.0:
                         self.c_normal[i] = ti.math.vec3(0.0, 1.0, 0.0)
+                        self.c_hit[i] = 1.0
                         self.c_dv[i] = ti.max(self.c_dv[i], 0.5 * (mu_p + gmu) * pen / dt)
                         self.c_vel[i] = ti.math.vec3(0.0)
                 if ti.static(self.has_objects):
@@ -176,6 +179,7 @@ class XPBDSolver:
                         x += pen * n
                         mu = 0.5 * (mu_p + self.objects.friction(k))
                         self.c_normal[i] = n
+                        self.c_hit[i] = 1.0
                         self.c_dv[i] = ti.max(self.c_dv[i], mu * pen / dt)
                         self.c_vel[i] = self.objects.velocity_at(k, x)
                 st.x[i] = x
@@ -189,6 +193,7 @@ class XPBDSolver:
                 if self.c_dv[i] > 0.0:
                     v = friction_velocity(v, self.c_normal[i], self.c_dv[i], self.c_vel[i])
                     self.c_dv[i] = 0.0
+                self.c_hit[i] = 0.0
             st.v[i] = v
 
     @ti.func

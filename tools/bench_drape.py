@@ -1,0 +1,43 @@
+"""Benchmark: drape_box at 163 x 163 with self-collision on and off.
+
+Prints median/p95 ms per frame (warm-up excluded), the per-pass split, the
+final and run-max stretch strain, and the ratio to the calibration workload
+measured in the same process. Usage: python tools/bench_drape.py [--frames N] [--arch cpu]
+"""
+
+import argparse
+import json
+import pathlib
+import sys
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from sandbox import runtime  # noqa: E402
+from sandbox.bench import bench_level, calibrate, machine  # noqa: E402
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--arch", default="cpu")
+    p.add_argument("--out", default="runs/bench_drape.json")
+    a = p.parse_args()
+    runtime.init(a.arch)
+    level = str(pathlib.Path(__file__).resolve().parents[1] / "levels" / "drape_box.yaml")
+    calib = calibrate()
+    res = {"machine": machine(), "calibration_ms": calib}
+    for label, sc in (("self_collision_on", True), ("self_collision_off", False)):
+        # 40 frames in: the cloth has reached the box and is draping.
+        r = bench_level(level, frames=a.frames, overrides={"scene.cloths.0.self_collision": sc})
+        r["ratio_to_calibration"] = r["frame_ms_p50"] / calib
+        res[label] = r
+        print(f"{label}: p50 {r['frame_ms_p50']:.1f} ms, p95 {r['frame_ms_p95']:.1f} ms, "
+              f"x{r['ratio_to_calibration']:.2f} calibration; passes {r['stage_ms']}")
+    print(f"calibration {calib:.1f} ms/frame; {res['machine']}")
+    out = pathlib.Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()
