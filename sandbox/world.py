@@ -63,7 +63,7 @@ class World:
         ground = None if scene.ground is None else (float(scene.ground.height), float(scene.ground.friction))
         self.solver = XPBDSolver(
             self.model, self.state, self.control, gravity=scene.gravity, ground=ground,
-            objects=self.objects, iterations=self.iterations,
+            objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
         )
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
         self.frame = 0
@@ -181,9 +181,9 @@ class World:
             if self.moving:
                 self._move_objects(self.time + (k + 1) * dt, dt)
             if profile:
-                self.solver.profile_substep(dt, (k + 1) / substeps)
+                self.solver.profile_substep(dt, (k + 1) / substeps, k, substeps)
             else:
-                self.solver.substep(dt, (k + 1) / substeps)
+                self.solver.substep(dt, (k + 1) / substeps, k, substeps)
         if profile:
             self.stage_ms = dict(self.solver.timings)
 

@@ -366,6 +366,8 @@ class Sim(_Model):
     """Time stepping: frames per second, substeps per frame, solver iterations.
 
     ``max_retries`` is the number of stability rollbacks allowed per frame.
+    ``self_collision_every`` runs cloth self-collision on every k-th substep
+    only (and always on the last substep of a frame).
     """
 
     fps: between(int, 1, 1000) = 60
@@ -375,6 +377,7 @@ class Sim(_Model):
     arch: Arch = "auto"
     frames: between(int, 1, 1_000_000) = 240
     max_retries: between(int, 0, 10) = 3
+    self_collision_every: between(int, 1, 16) = 1
 
 
 class Budget(_Model):

@@ -73,7 +73,7 @@ class XPBDSolver:
     """
 
     def __init__(self, model: Model, state: State, control: Control, *, gravity, ground=None, objects=None,
-                 iterations: int = 1) -> None:
+                 iterations: int = 1, self_collision_every: int = 1) -> None:
         self.model = model
         self.st = state
         self.ctl = control
@@ -122,6 +122,9 @@ class XPBDSolver:
         if self.has_ground or self.has_objects:
             it.append(CONTACTS)  # again: contacts have the last word in every iteration
         self.stages = tuple(pre + it * self.iterations + [VELOCITIES])
+        # The same substep without cloth self-collision, for substeps that skip it.
+        self.stages_lite = tuple(s for s in self.stages if s not in (SELF_HASH, SELF_COLLIDE))
+        self.self_collision_every = int(self_collision_every)
         self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------ passes
@@ -224,6 +227,11 @@ class XPBDSolver:
             self._stage(sid, dt, frac, gh, gmu)
 
     @ti.kernel
+    def _substep_lite_k(self, dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
+        for sid in ti.static(self.stages_lite):
+            self._stage(sid, dt, frac, gh, gmu)
+
+    @ti.kernel
     def _stage_k(self, sid: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
         self._stage(sid, dt, frac, gh, gmu)
 
@@ -273,15 +281,22 @@ class XPBDSolver:
         self.ctl.upload()
         self._begin_frame_k()
 
-    def substep(self, dt: float, frac: float) -> None:
-        """One fused substep; ``frac`` is how far through the frame it ends."""
-        gh, gmu = self._ground()
-        self._substep_k(dt, frac, gh, gmu)
+    def _stages_for(self, k: int, substeps: int) -> bool:
+        """Whether substep k of a frame runs cloth self-collision."""
+        return self.self_collision_every == 1 or k == substeps - 1 or k % self.self_collision_every == 0
 
-    def profile_substep(self, dt: float, frac: float) -> None:
+    def substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
+        """One fused substep (k of ``substeps``); ``frac`` is how far through the frame it ends."""
+        gh, gmu = self._ground()
+        if self.stages_lite != self.stages and not self._stages_for(k, substeps):
+            self._substep_lite_k(dt, frac, gh, gmu)
+        else:
+            self._substep_k(dt, frac, gh, gmu)
+
+    def profile_substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
         """The same substep, one launch per pass, accumulating ``self.timings`` (ms)."""
         gh, gmu = self._ground()
-        for sid in self.stages:
+        for sid in (self.stages if self._stages_for(k, substeps) else self.stages_lite):
             t0 = time.perf_counter()
             self._stage_k(sid, dt, frac, gh, gmu)
             ti.sync()
