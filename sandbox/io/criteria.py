@@ -72,6 +72,33 @@ def _rope_min_gap_ratio(world, of) -> float:
     return best
 
 
+def _winding_number(world, of) -> float:
+    """Eq. 1 winding of the wound part of rope C around rope T (``of: [C, T]``)."""
+    from sandbox.geometry.winding import winding_integral
+
+    names = _bodies(world, of)
+    if len(names) != 2:
+        raise ValueError("winding_number needs 'of: [active_rope, target_rope]'")
+    rec = getattr(world, "windings", {}).get(tuple(names))
+    if rec is None:
+        raise ValueError(f"no winding of {names[0]!r} around {names[1]!r} was made")
+    x = world.positions()
+    c = x[rec["particles"]].astype(np.float64)
+    t = world.rope_positions(names[1]).astype(np.float64)
+    return abs(float(winding_integral(c, t, rec["x_hat"])))
+
+
+def _linking_number(world, of) -> float:
+    """Gauss linking number of two ropes, each closed far away (an integer)."""
+    from sandbox.geometry.knots import linking_number
+
+    names = _bodies(world, of)
+    if len(names) != 2:
+        raise ValueError("linking_number needs 'of: [rope_a, rope_b]'")
+    return float(linking_number(world.rope_positions(names[0]).astype(np.float64),
+                                world.rope_positions(names[1]).astype(np.float64)))
+
+
 METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "max_strain": ("largest relative rod/edge stretch |l - r| / r over the run", _max_strain),
     "final_strain": ("largest relative rod/edge stretch at the end", _final_strain),
@@ -82,6 +109,8 @@ METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "max_speed": ("fastest particle at the end (m/s): small when settled", _max_speed),
     "min_height": ("lowest particle of the bodies at the end (m)", _min_height),
     "fsm_state": ("the FSM's state at the end (success, failure or a state name)", _fsm_state),
+    "winding_number": ("turns of the wound part of rope C around rope T (paper Eq. 1), of: [C, T]", _winding_number),
+    "linking_number": ("Gauss linking number of two ropes closed far away, of: [A, B]", _linking_number),
 }
 """Metric name -> (description, function)."""
 

@@ -2,3 +2,4 @@
 
 from sandbox.maneuvers import basic  # noqa: F401
 from sandbox.maneuvers.base import REGISTRY, Maneuver, Status, register  # noqa: F401
+from sandbox.maneuvers import winding  # noqa: F401,E402

@@ -1,0 +1,140 @@
+"""Winding: wind rope C around rope T along a geodesic of T's bounding tube (paper §4.2).
+
+Targets t_i are sampled every rod length along the geodesic G from the
+crossing; one particle of C at a time is driven to its target through
+intermediate targets (paper Eq. 4) and, once it arrives, the control moves to
+the next particle. Only the current particle is constrained: collisions keep
+the wound part on the tube, and the last particle stays held when the
+maneuver is done. T may move: when any of its particles has moved
+by more than a tenth of the tube radius since G was traced, the tube and G
+are traced again (at most every ``refresh`` frames) from the crossing point
+carried along with T's nearest particle.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+import pydantic
+
+from sandbox.maneuvers.base import Maneuver, Params, Status, register
+
+
+class WindingParams(Params):
+    active: str  # rope C
+    target: str  # rope T
+    start: int | Literal["nearest"] = "nearest"  # C's particle at the crossing
+    direction: Literal[1, -1] = 1  # wind C's particles after (+1) or before (-1) start
+    theta: Annotated[float, pydantic.Field(gt=0, lt=90)] = 45.0  # degrees
+    w0: Annotated[float, pydantic.Field(gt=0, le=10)] = 1.0  # turns
+    handedness: Literal[1, -1] = 1
+    along: Literal[1, -1] = 1  # advance along T's particle order (+1) or against it
+    speed: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m/s of the driven particle
+    tolerance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.25  # fraction of C's rod length
+    refresh: Annotated[int, pydantic.Field(ge=1)] = 1  # frames between geodesic updates
+    max_ticks_per_particle: Annotated[int, pydantic.Field(ge=1)] = 90
+
+
+@register
+class Winding(Maneuver):
+    """Wind rope ``active`` around rope ``target`` by Geodesic Control."""
+
+    name = "Winding"
+    Params = WindingParams
+
+    def start(self) -> None:
+        from sandbox.geometry.tube import tube_radius
+
+        p, w = self.params, self.world
+        self.c = w._rope(p.active)
+        self.t = w._rope(p.target)
+        self.R = tube_radius(self.c.radius, self.t.radius)
+        xc = w.rope_positions(p.active)
+        xt = w.rope_positions(p.target)
+        if p.start == "nearest":
+            d = np.linalg.norm(xc[:, None, :] - xt[None, :, :], axis=2).min(axis=1)
+            self.i0 = int(np.argmin(d))
+        else:
+            self.i0 = int(p.start) % len(xc)
+        self.cross = xc[self.i0].astype(np.float64)
+        # X follows T: kept as an offset from T's particle nearest to it.
+        self.j0 = int(np.argmin(np.linalg.norm(xt - self.cross, axis=1)))
+        self.offset = self.cross - xt[self.j0]
+        self.xt_traced = xt.astype(np.float64).copy()
+        self.k = 0
+        self.tick_in_particle = 0
+        self.targets = self._targets(xt)
+        n_left = (len(xc) - 1 - self.i0) if p.direction > 0 else self.i0
+        if len(self.targets) - 1 > n_left:
+            self.message = (f"rope {p.active!r} has {n_left} particles after the crossing; "
+                            f"the winding needs {len(self.targets) - 1}")
+            self.targets = self.targets[: n_left + 1]
+        self.n = len(self.targets)
+        self.pos = xc[self.i0].astype(np.float64)
+        self.x_hat = self.geodesic.x_hat
+        w.windings = getattr(w, "windings", {})
+        w.windings[(p.active, p.target)] = {"particles": self._particle(0), "x_hat": self.x_hat}
+
+    def _targets(self, xt: np.ndarray) -> np.ndarray:
+        from sandbox.geometry.tube import Tube, sample_targets, trace_geodesic
+
+        p = self.params
+        tube = Tube(xt.astype(np.float64), self.R)
+        self.geodesic = trace_geodesic(tube, self.cross, theta=np.radians(p.theta), w0=p.w0,
+                                       handedness=p.handedness, along=p.along)
+        return sample_targets(self.geodesic, self.c.rod_length)
+
+    def _particle(self, k: int) -> int:
+        return self.c.start + self.i0 + self.params.direction * k
+
+    def update(self) -> Status:
+        p, w = self.params, self.world
+        self.ticks += 1
+        if self.k >= self.n:
+            return Status.DONE
+        xt = w.rope_positions(p.target).astype(np.float64)
+        moved = float(np.linalg.norm(xt - self.xt_traced, axis=1).max())
+        if self.ticks % p.refresh == 0 and moved > 0.1 * self.R:
+            # T has moved: re-trace G on its current tube from the crossing carried along.
+            self.cross = xt[self.j0] + self.offset
+            self.targets = self._targets(xt)[: self.n]
+            self.xt_traced = xt.copy()
+            self.n = min(self.n, len(self.targets))
+        idx = self._particle(self.k)
+        target = self.targets[min(self.k, self.n - 1)]
+        step = p.speed / w.fps
+        d = target - self.pos
+        dist = float(np.linalg.norm(d))
+        self.pos = target.copy() if dist <= step else self.pos + d * (step / dist)
+        w.control.drive([idx], self.pos[None, :])
+        x = w.positions()[idx]
+        self.tick_in_particle += 1
+        if np.linalg.norm(x - target) <= p.tolerance * self.c.rod_length and dist <= step:
+            if self.k + 1 < self.n:
+                w.control.release([idx])  # only the current particle is held; the last one stays held
+            self.k += 1
+            self.tick_in_particle = 0
+            w.windings[(p.active, p.target)]["particles"] = np.arange(
+                min(self._particle(0), self._particle(self.k - 1)), max(self._particle(0), self._particle(self.k - 1)) + 1)
+            if self.k < self.n:
+                nxt = self._particle(self.k)
+                self.pos = w.positions()[nxt].astype(np.float64)
+        elif self.tick_in_particle > p.max_ticks_per_particle:
+            self.message = f"particle {idx} did not reach its target within {p.max_ticks_per_particle} frames"
+            w.control.release([idx])
+            return Status.FAILED
+        self.progress = self.k / max(self.n, 1)
+        if self.k >= self.n:
+            self.progress = 1.0
+            return Status.DONE
+        return Status.RUNNING
+
+    def stop(self) -> None:
+        # The last wound particle stays held (paper §4.2: constraining it keeps
+        # the winding); a later Tightening or Release frees it.
+        if self.k < self.n:
+            self.world.control.release([self._particle(self.k)])
+
+    def metrics(self) -> dict[str, float]:
+        return {"wound": self.k, "targets": self.n}
