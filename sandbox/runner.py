@@ -8,9 +8,12 @@ interrupted (Ctrl-C). Every ending leaves a valid ``summary.json`` whose
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import pathlib
 import platform
+import signal
+import threading
 import time
 import traceback
 
@@ -45,6 +48,29 @@ def _stats(ms: list[float]) -> dict:
         return {"p50": None, "p95": None, "max": None, "n": 0}
     a = np.asarray(ms)
     return {"p50": float(np.median(a)), "p95": float(np.percentile(a, 95)), "max": float(a.max()), "n": len(a)}
+
+
+@contextlib.contextmanager
+def _deferred_sigint():
+    """Ctrl-C stops the run at the next frame boundary (a second Ctrl-C at once).
+
+    Yields a dict whose ``"stop"`` becomes True on the first Ctrl-C.
+    """
+    flag = {"stop": False}
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+
+    def handler(signum, frame):
+        if flag["stop"]:
+            raise KeyboardInterrupt
+        flag["stop"] = True
+
+    old = signal.signal(signal.SIGINT, handler)
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
@@ -101,28 +127,8 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
 
             bar = tqdm(total=n, desc=level.name, unit="frame", leave=False)
         last_state = world.fsm.state if world.fsm else ""
-        for f in range(n):
-            t0 = time.perf_counter()
-            row = sim.step()
-            dt_ms = 1e3 * (time.perf_counter() - t0)
-            row["frame_ms"] = round(dt_ms, 3)
-            profiled = "stage_ms" in row
-            if f >= WARMUP_FRAMES and not profiled:
-                frame_ms.append(dt_ms)
-                for k, v in row["ms"].items():
-                    systems.setdefault(k, []).append(v)
-            if profiled and f >= WARMUP_FRAMES:
-                for k, v in row["stage_ms"].items():
-                    stages.setdefault(k, []).append(v)
-            log.write(row)
-            summary["frames_run"] = f + 1
-            state = world.fsm.state if world.fsm else ""
-            if recorder is not None:
-                recorder.on_frame(sim, f, state, state != last_state)
-            last_state = state
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix_str(f"{state} {dt_ms:.0f} ms")
+        with _deferred_sigint() as sigint:
+            _frames(sim, world, n, log, summary, recorder, bar, frame_ms, systems, stages, last_state, sigint)
         if bar is not None:
             bar.close()
         summary["status"] = "completed"
@@ -171,3 +177,31 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
             code = EXIT_OK if summary["success"] else EXIT_CRITERIA
     write_json_atomic(out / "summary.json", summary)
     return code, summary
+
+
+def _frames(sim, world, n, log, summary, recorder, bar, frame_ms, systems, stages, last_state, sigint) -> None:
+    """The frame loop; a frame's physics, metrics row and picture stay together."""
+    for f in range(n):
+        if sigint["stop"]:
+            raise KeyboardInterrupt
+        t0 = time.perf_counter()
+        row = sim.step()
+        dt_ms = 1e3 * (time.perf_counter() - t0)
+        row["frame_ms"] = round(dt_ms, 3)
+        profiled = "stage_ms" in row
+        if f >= WARMUP_FRAMES and not profiled:
+            frame_ms.append(dt_ms)
+            for k, v in row["ms"].items():
+                systems.setdefault(k, []).append(v)
+        if profiled and f >= WARMUP_FRAMES:
+            for k, v in row["stage_ms"].items():
+                stages.setdefault(k, []).append(v)
+        log.write(row)
+        summary["frames_run"] = f + 1
+        state = world.fsm.state if world.fsm else ""
+        if recorder is not None:
+            recorder.on_frame(sim, f, state, state != last_state)
+        last_state = state
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"{state} {dt_ms:.0f} ms")

@@ -220,7 +220,24 @@ class World:
         )
 
     def step(self) -> dict:
-        """One frame: physics (with rollback), FSM tick, metrics. Returns the frame's metrics."""
+        """One frame: physics (with rollback), FSM tick, metrics. Returns the frame's metrics.
+
+        A KeyboardInterrupt anywhere inside puts the state back to the start of
+        the frame before it propagates, so the state always is a whole frame.
+        """
+        snap = (self.state.save(), self.frame, self.time, self.control.snapshot(),
+                [self.objects.pose(k) for k in self.moving] if self.moving else [])
+        try:
+            return self._step()
+        except KeyboardInterrupt:
+            self.state.restore(snap[0])
+            self.frame, self.time = snap[1], snap[2]
+            self.control.restore(snap[3])
+            for k, (p, r) in zip(self.moving, snap[4]):
+                self.objects.place(k, p, r)
+            raise
+
+    def _step(self) -> dict:
         t0 = time.perf_counter()
         m = self.step_physics()
         t1 = time.perf_counter()

@@ -163,8 +163,10 @@ class MoveTo(Maneuver):
         self.world.control.drive(self.idx, self.pos + self.offsets)
         self.progress = min(1.0, self.travelled / self.total)
         if self.leg >= len(self.waypoints):
+            # Positions are those after the last physics step: done once the
+            # sites themselves (not just their command) are at the target.
             x = self.world.positions()[self.idx].mean(axis=0)
-            if np.linalg.norm(x - self.waypoints[-1]) <= self.params.tolerance + step:
+            if np.linalg.norm(x - self.waypoints[-1]) <= self.params.tolerance:
                 self.progress = 1.0
                 return Status.DONE
         return Status.RUNNING

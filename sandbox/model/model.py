@@ -158,6 +158,15 @@ class Control:
         """Current targets of particles ``idx`` (m)."""
         return self._dst[np.asarray(idx)].copy()
 
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copy of the host-side targets (for rollback)."""
+        return self._driven.copy(), self._dst.copy()
+
+    def restore(self, snap: tuple[np.ndarray, np.ndarray]) -> None:
+        """Restore a :meth:`snapshot`; uploaded at the next frame."""
+        self._driven[:], self._dst[:] = snap
+        self._dirty = True
+
     @property
     def driven_indices(self) -> np.ndarray:
         return np.flatnonzero(self._driven)

@@ -132,7 +132,7 @@ class ChainProjection:
             self.nrm[j] = n
             # A small relative regulariser keeps a taut chain between two pins
             # (all rods collinear: one redundant constraint) from a zero pivot.
-            diag = self._wdot(a, n, n) + self._wdot(b, n, n) + 1e-4 * (self.w[a] + self.w[b])
+            diag = self._wdot(a, n, n) + self._wdot(b, n, n) + 1e-6 * (self.w[a] + self.w[b])
             rhs = -(length - self.rest[j])
             sub = 0.0  # A[j, j-1] = -n_{j-1}^T W_a n_j
             if j > lo:

@@ -1,0 +1,286 @@
+"""The embedding API driven like a host game loop: fixed-step accumulator, read-back, FSM progress, maneuvers."""
+
+from __future__ import annotations
+
+import math
+import pathlib
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from sandbox.api import Sandbox
+from sandbox.levels import load_level_from_string
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+FPS = 60
+DT = 1.0 / FPS
+
+SCENE = """
+version: 1
+name: api_scene
+scene:
+  ground: {{height: -2.0, friction: 0.5}}
+  objects:
+    - {{name: block, shape: box, params: {{size: [0.2, 0.2, 0.2]}}, position: [2.0, -2.0, 0.0]}}
+  cloths:
+    - {{name: sheet, resolution: [5, 4], size: [0.4, 0.3], center: [-2.0, 1.0, 0.0], self_collision: false,
+       pins: [A, D]}}
+  ropes:
+    - {{name: cord, points: [[0.0, 1.0, 0.0], [0.4, 1.0, 0.0]], segments: 8, radius: 0.01, pins: [start]}}
+sim: {{fps: {fps}, substeps: 4, iterations: 1, frames: 100}}
+fsm: {fsm}
+"""
+
+TARGET = (0.2, 0.8, 0.0)
+SCENARIO = (
+    "[{run: Wait, with: {ticks: 3}}, {run: Wait, with: {ticks: 2}},"
+    " {run: MoveTo, with: {body: cord, sites: [end], to: [0.2, 0.8, 0.0], speed: 1.0, tolerance: 0.002}},"
+    " {run: Wait, with: {ticks: 2}},"
+    " {run: Release, with: {body: cord, sites: [end]}},"
+    " {run: Wait, with: {ticks: 100000}}]"
+)
+ROD = """
+version: 1
+name: api_rod
+scene:
+  ground: false
+  ropes:
+    - {{name: rod, points: [[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], segments: 1, radius: 0.01}}
+sim: {{fps: {fps}, substeps: 2, iterations: 1, frames: 100}}
+fsm: [{{run: Wait, with: {{ticks: 100000}}}}]
+"""
+
+
+class FakeClock:
+    """A monotonic clock the test advances by hand (s)."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _rod(**kwargs) -> Sandbox:
+    """A one-rod scene (cheap to compile) for the accumulator tests."""
+    return Sandbox(load_level_from_string(ROD.format(fps=FPS), base_dir=ROOT), arch="cpu", **kwargs)
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    """The API scene run through Wait(3), Wait(2), MoveTo, Release and Wait, recorded frame by frame.
+
+    Building a scene compiles its kernels, so one run serves every test below.
+    """
+    sim = Sandbox(load_level_from_string(SCENE.format(fps=FPS, fsm=SCENARIO), base_dir=ROOT), arch="cpu")
+    rec = {"sim": sim, "rope0": sim.rope_positions("cord"), "cloth0": sim.cloth_positions("sheet"),
+           "states": [], "rows": [], "ends": [], "pins": [], "driven": []}
+    end = sim.world.site_particles("cord", "end")
+    for _ in range(80):
+        row = sim.step()
+        rec["rows"].append(row)
+        rec["states"].append((sim.fsm_state, sim.finished))
+        rope = sim.rope_positions("cord")
+        rec["ends"].append(rope[-1].astype(np.float64))
+        rec["pins"].append(rope[0].copy())
+        rec["driven"].append(bool(sim.world.control.is_driven(end).all()))
+    rec["events"] = list(sim.events)
+    return rec
+
+
+def _near_whole(x: float) -> bool:
+    return abs(x - round(x)) < 1e-9
+
+
+# ------------------------------------------------------------------ fixed-step accumulator
+def test_advance_runs_every_whole_frame_of_accumulated_time():
+    """With no cap, advance() has run exactly floor(accumulated wall time / dt) frames after every call, alpha in [0, 1)."""
+    clock = FakeClock()
+    sim = _rod(clock=clock, max_frames_per_advance=10**6)
+    assert sim.advance() == 0                     # the first call only starts the clock
+    rng = np.random.default_rng(1)
+    total = 0.0
+    for k in range(40):
+        inc = 0.0 if k % 7 == 3 else float(rng.uniform(0.0, 2.5 * DT))
+        clock.now += inc
+        total += inc
+        before = sim.frame
+        n = sim.advance()
+        assert n == sim.frame - before
+        if not _near_whole(total / DT):
+            assert sim.frame == math.floor(total / DT)
+        assert 0.0 <= sim.alpha < 1.0
+        assert sim.alpha * DT == pytest.approx(total - sim.frame * DT, abs=1e-9)
+    assert sim.frame > 30 and sim.dropped_time == 0.0
+    assert sim.time == pytest.approx(sim.frame * DT)
+
+
+def test_advance_caps_frames_and_counts_dropped_time():
+    """advance() runs at most max_frames_per_advance frames per call and drops whole frames of the rest, accounting for all wall time."""
+    clock = FakeClock()
+    cap = 3
+    sim = _rod(clock=clock, max_frames_per_advance=cap)
+    sim.advance()
+    rng = np.random.default_rng(2)
+    total = 0.0
+    hitches = 0
+    for k in range(30):
+        inc = 10.3 * DT if k % 6 == 5 else float(rng.uniform(0.0, 1.5 * DT))
+        avail = sim.alpha + inc / DT                 # frames owed before the call
+        dropped_before = sim.dropped_time
+        clock.now += inc
+        total += inc
+        n = sim.advance()
+        assert n <= cap
+        if not _near_whole(avail):
+            assert n == min(cap, math.floor(avail))
+            dropped = (sim.dropped_time - dropped_before) / DT
+            assert dropped == pytest.approx(max(0, math.floor(avail) - cap), abs=1e-6)
+            hitches += dropped > 0
+        assert 0.0 <= sim.alpha < 1.0
+        assert sim.frame * DT + sim.dropped_time + sim.alpha * DT == pytest.approx(total, abs=1e-9)
+    assert hitches == 5
+    with pytest.raises(ValueError):
+        sim.advance(-0.01)
+
+
+# ------------------------------------------------------------------ read-back
+def test_readback_shapes_and_dtypes(scenario):
+    """Rope, cloth and object read-back arrays have the documented shapes, dtypes and grid layout."""
+    sim = scenario["sim"]
+    assert sim.rope_names == ["cord"] and sim.cloth_names == ["sheet"] and sim.object_names == ["block"]
+    rope = scenario["rope0"]
+    assert sim.rope_positions("cord").shape == rope.shape == (9, 3) and rope.dtype == np.float32
+    np.testing.assert_allclose(rope[[0, -1]], [[0.0, 1.0, 0.0], [0.4, 1.0, 0.0]], atol=1e-6)
+
+    nx, nz = sim.cloth_shape("sheet")
+    assert (nx, nz) == (5, 4)
+    cloth = scenario["cloth0"]
+    assert sim.cloth_positions("sheet").shape == cloth.shape == (nx * nz, 3) and cloth.dtype == np.float32
+    grid = cloth.reshape(nz, nx, 3)                  # particle (i, j) at j * nx + i
+    np.testing.assert_allclose(grid[0, :, 0], np.linspace(-2.2, -1.8, nx), atol=1e-6)
+    np.testing.assert_allclose(grid[:, 0, 2], np.linspace(-0.15, 0.15, nz), atol=1e-6)
+    faces = sim.cloth_faces("sheet")
+    assert faces.shape == (2 * (nx - 1) * (nz - 1), 3) and faces.dtype == np.int32
+    assert faces.min() == 0 and faces.max() == nx * nz - 1
+
+    verts, tris = sim.object_mesh("block")
+    assert verts.ndim == 2 and verts.shape[1] == 3 and verts.dtype == np.float32
+    assert tris.ndim == 2 and tris.shape[1] == 3 and tris.dtype == np.int32
+    np.testing.assert_allclose(verts.min(axis=0), [1.9, -2.0, -0.1], atol=1e-6)
+    np.testing.assert_allclose(verts.max(axis=0), [2.1, -1.8, 0.1], atol=1e-6)
+    assert sim.ground_height == -2.0 and sim.camera is None
+    assert set(sim.timings()) == {"physics", "fsm", "metrics"}
+
+
+# ------------------------------------------------------------------ FSM and maneuvers
+def test_wait_chain_states_and_events_by_tick(scenario):
+    """A Wait(3) then Wait(2) chain is in the right state after each frame and logs enter/done/exit at the right ticks."""
+    assert [r["fsm_state"] for r in scenario["rows"][:6]] == [s for s, _ in scenario["states"][:6]]
+    assert scenario["states"][:6] == [("0:Wait", False), ("0:Wait", False), ("1:Wait", False), ("1:Wait", False),
+                                      ("2:MoveTo", False), ("2:MoveTo", False)]
+    events = [(e["tick"], e["type"], e["state"]) for e in scenario["events"] if e["tick"] <= 5]
+    assert events == [(1, "enter", "0:Wait"), (3, "done", "0:Wait"), (3, "exit", "0:Wait"),
+                      (3, "enter", "1:Wait"), (5, "done", "1:Wait"), (5, "exit", "1:Wait"),
+                      (5, "enter", "2:MoveTo")]
+    assert not any(f for _, f in scenario["states"])
+
+
+def test_moveto_reaches_target_then_release_lets_go(scenario):
+    """MoveTo brings the rope end to its target within tolerance, reports done and holds it; after Release the end falls."""
+    target = np.asarray(TARGET)
+    start = scenario["ends"][4]                      # where the end was when MoveTo started (tick 5)
+    ends, driven = scenario["ends"], scenario["driven"]
+    done = [e for e in scenario["events"] if e["type"] == "done" and e["state"] == "2:MoveTo"]
+    assert len(done) == 1, scenario["events"]
+    tick = done[0]["tick"]
+    # entered at tick 5; at 1 m/s it cannot arrive in fewer than distance * fps frames
+    assert tick - 5 >= np.linalg.norm(target - start) * FPS
+    assert np.linalg.norm(ends[tick - 2] - target) > 0.002, "not done before getting close"
+    for k in (tick, tick + 1):                       # held at the target (frames tick + 1, tick + 2)
+        assert np.linalg.norm(ends[k] - target) <= 0.002
+    assert all(driven[4 : tick + 1]), "the end is held while it moves and after"
+
+    released = [e for e in scenario["events"] if e["type"] == "enter" and e["state"] == "4:Release"]
+    assert released and released[0]["tick"] == tick + 2
+    assert not any(driven[tick + 1 :])
+    heights = [e[1] for e in ends[tick + 1 : tick + 21]]
+    assert heights[-1] < TARGET[1] - 0.1, "the released end falls"
+    assert scenario["states"][-1] == ("5:Wait", False)
+    for pin in scenario["pins"]:
+        np.testing.assert_array_equal(pin, scenario["rope0"][0])
+
+
+EARLY = """
+version: 1
+name: early
+scene:
+  ground: false
+  ropes:
+    - {{name: cord, points: [[0.0, 1.0, 0.0], [0.3, 1.0, 0.0]], segments: 4, radius: 0.01, pins: [end]}}
+sim: {{fps: 60, substeps: 4, iterations: 1, frames: 100}}
+fsm:
+  - {{run: MoveTo, with: {{body: cord, sites: [end], to: [{x!r}, 1.0, 0.0], speed: 1.0, tolerance: 0.002}}}}
+  - {{run: Wait, with: {{ticks: 100000}}}}
+"""
+
+
+def test_moveto_done_only_within_tolerance():
+    """When MoveTo reports done, its site is within tolerance of the target."""
+    d = 10.0 / 60.0 + 0.005                          # 10 whole frames at 1 m/s, then 5 mm
+    sim = Sandbox(load_level_from_string(EARLY.format(x=0.3 + d), base_dir=ROOT), arch="cpu")
+    target = np.array([0.3 + d, 1.0, 0.0])
+    for _ in range(20):
+        sim.step()
+        if any(e["type"] == "done" for e in sim.events):
+            break
+    assert sim.fsm_state == "1:Wait"
+    assert np.linalg.norm(sim.rope_positions("cord")[-1] - target) <= 0.002
+
+
+HANGING = """
+version: 1
+name: hanging
+scene:
+  ground: false
+  ropes:
+    - {name: cord, points: [[0.0, 1.0, 0.0], [0.0, 0.6, 0.0]], segments: 8, radius: 0.01, pins: [start]}
+sim: {fps: 60, substeps: 4, iterations: 1, frames: 100}
+fsm:
+  - {run: Wait, with: {ticks: 3}}
+  - {run: Anchoring, with: {body: cord, sites: [end]}}
+  - {run: Wait, with: {ticks: 100000}}
+"""
+
+
+def test_anchoring_the_end_of_a_hanging_rope():
+    """Anchoring the lower end of a rope hanging straight down (taut, rods collinear) holds it without blowing up."""
+    sim = Sandbox(load_level_from_string(HANGING, base_dir=ROOT), arch="cpu")
+    for _ in range(3):
+        sim.step()
+    held = sim.rope_positions("cord")[-1].copy()     # Anchoring starts at tick 3, holding the end here
+    for _ in range(10):
+        row = sim.step()
+        assert row["retries"] == 0 and row["strain"]["cord"] <= 0.01
+    assert sim.fsm_state == "2:Wait"
+    np.testing.assert_array_equal(sim.rope_positions("cord")[-1], held)
+
+
+def test_positions_field_is_a_live_view(scenario):
+    """positions_field is the simulation's own Taichi field: its body_range slices match read-back, follow steps and take writes."""
+    sim = scenario["sim"]
+    field = sim.positions_field
+    assert isinstance(field, ti.MatrixField) and field.n == 3 and field.dtype == ti.f32
+    a, b = sim.body_range("cord")
+    c, d = sim.body_range("sheet")
+    assert b - a == 9 and d - c == 20 and field.shape == (max(b, d),)
+    for _ in range(3):
+        sim.step()
+        x = field.to_numpy()                         # the handle taken before stepping
+        np.testing.assert_array_equal(x[a:b], sim.rope_positions("cord"))
+        np.testing.assert_array_equal(x[c:d], sim.cloth_positions("sheet"))
+    field[a + 4] = ti.math.vec3(5.0, 6.0, 7.0)
+    np.testing.assert_array_equal(sim.rope_positions("cord")[4], [5.0, 6.0, 7.0])
+    with pytest.raises(KeyError):
+        sim.body_range("nothing")

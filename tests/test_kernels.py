@@ -1,0 +1,243 @@
+"""Taichi collision kernels against NumPy / SciPy brute-force references."""
+
+import pathlib
+
+import numpy as np
+import pytest
+import taichi as ti
+from scipy.spatial import cKDTree
+
+from sandbox.api import Sandbox
+from sandbox.collision.capsule_np import segment_segment_closest
+from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
+from sandbox.constraints.capsule import segment_closest
+from sandbox.levels import load_level_from_string
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+MAX_NEIGHBOURS = 256
+
+
+@ti.kernel
+def _segment_closest_k(p0: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+                       p1: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+                       q0: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+                       q1: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+                       st: ti.types.ndarray(dtype=ti.math.vec2, ndim=1),
+                       dist: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+    for i in range(p0.shape[0]):
+        s, t = segment_closest(p0[i], p1[i], q0[i], q1[i])
+        c1 = p0[i] + s * (p1[i] - p0[i])
+        c2 = q0[i] + t * (q1[i] - q0[i])
+        st[i] = ti.math.vec2(s, t)
+        dist[i] = (c1 - c2).norm()
+
+
+@ti.kernel
+def _hash_neighbours_k(grid: ti.template(), pts: ti.template(), n: ti.i32, radius: ti.f32,
+                       nbr: ti.types.ndarray(dtype=ti.i32, ndim=2), cnt: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    for i in range(n):
+        home = cell_of(pts[i], grid.inv_cell)
+        k = 0
+        for o in range(27):
+            c = home + neighbor_offset(o)
+            h = hash_cell(c, grid.mask)
+            for slot in range(grid.start[h], grid.start[h + 1]):
+                j = grid.entries[slot]
+                if j != i and (grid.item_cell[j] == c).all() and (pts[i] - pts[j]).norm() < radius:
+                    if k < nbr.shape[1]:
+                        nbr[i, k] = j
+                    k += 1
+        cnt[i] = k
+
+
+# ------------------------------------------------------------------ segment_closest
+def _segment_cases(rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """(p0, p1, q0, q1) float32: random pairs plus parallel, collinear, crossing and degenerate families.
+
+    Nearly parallel pairs are left to ``test_segment_closest_nearly_parallel``.
+    """
+    n = 2000
+    groups = []
+    groups.append(rng.uniform(-1, 1, (4, n, 3)))                                 # general position
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    p0 = rng.uniform(-1, 1, (n, 3))
+    a = rng.uniform(0.05, 1.0, (n, 1))
+    b = rng.uniform(-1.0, 1.0, (n, 1))                                           # anti-parallel when < 0
+    off = rng.normal(size=(n, 3)) * rng.uniform(0, 0.5, (n, 1))
+    groups.append(np.stack([p0, p0 + a * u, p0 + off, p0 + off + b * u]))       # parallel
+    along = rng.uniform(-1.5, 1.5, (n, 1)) * u
+    groups.append(np.stack([p0, p0 + a * u, p0 + along, p0 + along + b * u]))   # collinear
+    s = rng.uniform(0, 1, (n, 1))
+    w = rng.normal(size=(n, 3))
+    hit = p0 + s * a * u
+    groups.append(np.stack([p0, p0 + a * u, hit - 0.3 * w, hit + 0.7 * w]))     # crossing (distance 0)
+    q0 = rng.uniform(-1, 1, (n, 3))
+    q1 = rng.uniform(-1, 1, (n, 3))
+    groups.append(np.stack([p0, p0, q0, q1]))                                    # first is a point
+    groups.append(np.stack([q0, q1, p0, p0]))                                    # second is a point
+    groups.append(np.stack([p0, p0, q0, q0]))                                    # both are points
+    tiny = 1e-7 * u
+    groups.append(np.stack([p0, p0 + tiny, q0, q1]))                             # first shorter than 1 um
+    groups.append(np.stack([q0, q1, p0, p0 - tiny]))                             # second shorter than 1 um
+    allp = np.concatenate(groups, axis=1).astype(np.float32)
+    return tuple(np.ascontiguousarray(allp[k]) for k in range(4))
+
+
+def test_segment_closest_matches_numpy_reference():
+    """Taichi segment_closest gives the NumPy reference distance within 1e-5 m, parallel and degenerate pairs included."""
+    p0, p1, q0, q1 = _segment_cases(np.random.default_rng(7))
+    n = len(p0)
+    st = np.zeros((n, 2), np.float32)
+    dist = np.zeros(n, np.float32)
+    _segment_closest_k(p0, p1, q0, q1, st, dist)
+    ref = segment_segment_closest(*(a.astype(np.float64) for a in (p0, p1, q0, q1)))[4]
+    assert np.isfinite(dist).all()
+    assert ((st >= 0.0) & (st <= 1.0)).all()
+    err = np.abs(dist.astype(np.float64) - ref)
+    worst = int(np.argmax(err))
+    assert err.max() <= 1e-5, (f"pair {worst}: taichi {dist[worst]!r} numpy {ref[worst]!r}",
+                               p0[worst], p1[worst], q0[worst], q1[worst])
+    assert (ref < 1e-6).sum() >= 2000, "the crossing family must be present"
+
+
+def _closest_distance(p0, p1, q0, q1) -> np.ndarray:
+    n = len(p0)
+    st = np.zeros((n, 2), np.float32)
+    dist = np.zeros(n, np.float32)
+    _segment_closest_k(*(np.ascontiguousarray(a, dtype=np.float32) for a in (p0, p1, q0, q1)), st, dist)
+    return dist
+
+
+def test_segment_closest_nearly_parallel():
+    """For 1 m segments 1e-3 rad from parallel, Taichi segment_closest matches the reference distance within 1e-5 m."""
+    rng = np.random.default_rng(19)
+    n, length, tilt = 4000, 1.0, 1e-3
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = u + tilt * rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    p0 = rng.uniform(-1, 1, (n, 3))
+    q0 = p0 + 0.01 * rng.normal(size=(n, 3)) + 0.3 * length * u
+    pts = [a.astype(np.float32) for a in (p0, p0 + length * u, q0, q0 + length * v)]
+    dist = _closest_distance(*pts)
+    ref = segment_segment_closest(*(a.astype(np.float64) for a in pts))[4]
+    assert np.abs(dist - ref).max() <= 1e-5
+
+
+# ------------------------------------------------------------------ spatial hash
+def _point_sets(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    uniform = rng.uniform(-0.5, 0.5, (3000, 3))
+    centres = rng.uniform(-0.3, 0.3, (20, 3))
+    clusters = (centres[:, None, :] + 0.02 * rng.normal(size=(20, 100, 3))).reshape(-1, 3)
+    clusters[::50] = clusters[1::50]                                              # exact duplicates
+    far = rng.uniform(-0.4, 0.4, (1500, 3)) + np.array([-37.3, 12.1, 5.5])      # negative cells, far away
+    return {"uniform": uniform, "clusters": clusters, "far": far}
+
+
+@pytest.mark.parametrize("which", ["uniform", "clusters", "far"])
+def test_hashgrid_finds_every_close_pair(which):
+    """A 27-cell scan of the HashGrid finds exactly the point pairs closer than one cell (brute-force KD-tree)."""
+    pts64 = _point_sets(np.random.default_rng(3))[which]
+    pts = pts64.astype(np.float32)
+    n, cell = len(pts), 0.05
+    field = ti.Vector.field(3, ti.f32, shape=n)
+    field.from_numpy(pts)
+    grid = HashGrid(n, cell)
+    grid.build(field, 0, n)
+    nbr = np.full((n, MAX_NEIGHBOURS), -1, np.int32)
+    cnt = np.zeros(n, np.int32)
+    _hash_neighbours_k(grid, field, n, cell, nbr, cnt)
+    assert cnt.max() <= MAX_NEIGHBOURS
+    found = {(min(i, int(j)), max(i, int(j))) for i in range(n) for j in nbr[i, : cnt[i]]}
+
+    p = pts.astype(np.float64)
+    ref = cKDTree(p).query_pairs(cell * (1 + 1e-5))
+    sure = {(i, j) for i, j in ref if np.linalg.norm(p[i] - p[j]) < cell * (1 - 1e-5)}
+    assert len(sure) > 100, "too few close pairs for the test to mean anything"
+    assert sure <= found, f"missed pairs: {sorted(sure - found)[:5]}"
+    assert found <= ref, f"pairs farther than a cell: {sorted(found - ref)[:5]}"
+    # each pair is seen from both ends
+    seen = {(i, int(j)) for i in range(n) for j in nbr[i, : cnt[i]]}
+    assert all((j, i) in seen for i, j in seen)
+
+
+def test_hashgrid_buckets_sorted_by_id():
+    """HashGrid buckets partition the items, each bucket's entries sorted by id, and a rebuild is bitwise identical."""
+    pts = _point_sets(np.random.default_rng(5))["clusters"].astype(np.float32)
+    n = len(pts)
+    field = ti.Vector.field(3, ti.f32, shape=n)
+    field.from_numpy(pts)
+    grid = HashGrid(n, 0.01)
+    grid.build(field, 0, n)
+    start = grid.start.to_numpy()
+    entries = grid.entries.to_numpy()
+    bucket = grid.item_bucket.to_numpy()
+    cells = grid.item_cell.to_numpy()
+    assert start[0] == 0 and start[-1] == n and (np.diff(start) >= 0).all()
+    np.testing.assert_array_equal(np.sort(entries), np.arange(n))
+    multi = 0
+    for b in np.flatnonzero(np.diff(start) > 0):
+        ids = entries[start[b] : start[b + 1]]
+        assert (np.diff(ids) > 0).all(), f"bucket {b} not sorted: {ids}"
+        assert (bucket[ids] == b).all()
+        multi += len(ids) > 1
+    assert multi > 50, "too few shared buckets for the order to matter"
+    # items of one cell share a bucket
+    _, inverse = np.unique(cells, axis=0, return_inverse=True)
+    for c in np.unique(inverse.ravel())[:200]:
+        assert len(np.unique(bucket[inverse.ravel() == c])) == 1
+    grid.build(field, 0, n)
+    np.testing.assert_array_equal(grid.entries.to_numpy(), entries)
+
+
+# ------------------------------------------------------------------ rope capsule broad + narrow phase
+ROPES_YAML = """
+version: 1
+name: capsules
+scene:
+  ground: false
+  ropes:
+    - {name: a, points: [[0, 1, 0], [2, 1, 0]], segments: 40, radius: 0.015}
+    - {name: b, points: [[0, 2, 0], [2, 2, 0]], segments: 40, radius: 0.02}
+    - {name: c, points: [[0, 3, 0], [2, 3, 0]], segments: 40, radius: 0.025}
+sim: {fps: 60, substeps: 1, frames: 1}
+fsm:
+  - {run: Wait, with: {ticks: 1}}
+"""
+
+
+def test_rope_collision_gaps_match_brute_force():
+    """RopeCollision.measure gives, for every touching segment, the brute-force minimum capsule gap over all allowed pairs."""
+    sim = Sandbox(load_level_from_string(ROPES_YAML, base_dir=ROOT), arch="cpu")
+    world = sim.world
+    data = world.data
+    rng = np.random.default_rng(11)
+    x = world.positions().astype(np.float64)
+    for r in data.ropes:
+        k = r.end - r.start
+        steps = rng.normal(size=(k - 1, 3))
+        steps *= r.rod_length / np.linalg.norm(steps, axis=1, keepdims=True)
+        x[r.start : r.end] = rng.uniform(0, 0.3, 3) + np.concatenate([np.zeros((1, 3)), np.cumsum(steps, 0)])
+    world.state.x.from_numpy(x.astype(np.float32))
+    gap = world.solver.ropecol.measure()
+
+    xs = world.positions().astype(np.float64)
+    seg = data.segments
+    rope = data.segment_rope
+    rad = np.array([r.radius for r in data.ropes])[rope]
+    rod = np.array([r.rod_length for r in data.ropes])
+    skip = np.maximum(2, np.ceil(1.0 + 2.0 * np.array([r.radius for r in data.ropes]) / rod - 1e-9))
+    s_idx, t_idx = np.meshgrid(np.arange(len(seg)), np.arange(len(seg)), indexing="ij")
+    s_idx, t_idx = s_idx.ravel(), t_idx.ravel()
+    ok = (s_idx != t_idx) & ((rope[s_idx] != rope[t_idx]) | (np.abs(s_idx - t_idx) >= skip[rope[s_idx]]))
+    s_idx, t_idx = s_idx[ok], t_idx[ok]
+    d = segment_segment_closest(xs[seg[s_idx, 0]], xs[seg[s_idx, 1]], xs[seg[t_idx, 0]], xs[seg[t_idx, 1]])[4]
+    g = d - rad[s_idx] - rad[t_idx]
+    brute = np.full(len(seg), 1e30)
+    np.minimum.at(brute, s_idx, g)
+
+    touching = brute < 0.0
+    assert touching.sum() > 10, "too few contacts for the test to mean anything"
+    np.testing.assert_allclose(gap[touching], brute[touching], atol=2e-6)
+    assert (gap >= brute - 2e-6).all(), "a gap smaller than any allowed pair: a forbidden pair was counted"

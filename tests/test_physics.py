@@ -1,0 +1,263 @@
+"""Physics of the XPBD world: closed forms, invariants on the shipped levels, and rollback on blow-up."""
+
+from __future__ import annotations
+
+import math
+import pathlib
+
+import numpy as np
+import pytest
+
+from sandbox.api import Sandbox
+from sandbox.levels import load_level_from_string
+from sandbox.world import SimulationUnstable
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+LEVELS = ROOT / "levels"
+G = 9.81
+
+
+def _rod_level(p0, p1, *, pins=(), ground="false", gravity=(0.0, -G, 0.0), fps=60, substeps=10,
+               max_retries=3, radius=1e-3) -> str:
+    """YAML of a one-rod rope (two particles) without damping or objects."""
+    pins_yaml = "[" + ", ".join(pins) + "]"
+    return f"""
+version: 1
+name: rod
+scene:
+  gravity: [{gravity[0]!r}, {gravity[1]!r}, {gravity[2]!r}]
+  ground: {ground}
+  ropes:
+    - name: rod
+      points: [[{p0[0]!r}, {p0[1]!r}, {p0[2]!r}], [{p1[0]!r}, {p1[1]!r}, {p1[2]!r}]]
+      segments: 1
+      radius: {radius!r}
+      damping: 0.0
+      pins: {pins_yaml}
+sim: {{fps: {fps}, substeps: {substeps}, iterations: 1, max_retries: {max_retries}, frames: 10}}
+fsm:
+  - {{run: Wait, with: {{ticks: 100000}}}}
+"""
+
+
+def _sandbox(text: str) -> Sandbox:
+    return Sandbox(load_level_from_string(text, base_dir=ROOT), arch="cpu")
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float32).view(np.uint32)
+
+
+# ------------------------------------------------------------------ closed forms
+def test_free_fall_matches_symplectic_euler_error():
+    """A free particle falls g T^2/2 plus exactly the symplectic-Euler excess g h T/2, up to float32 rounding."""
+    fps, substeps, frames = 60, 2, 60
+    sim = _sandbox(_rod_level((0.0, 0.0, 0.0), (0.01, 0.0, 0.0), fps=fps, substeps=substeps))
+    y0 = sim.rope_positions("rod")[:, 1].astype(np.float64)
+    for _ in range(frames):
+        sim.step()
+    x = sim.rope_positions("rod")
+    v = sim.world.velocities()
+    h = 1.0 / (fps * substeps)
+    n = frames * substeps
+    T = frames / fps
+    assert sim.time == pytest.approx(T)
+
+    err = (y0 - 0.5 * G * T * T) - x[:, 1]          # how much further than the exact fall (m)
+    predicted = 0.5 * G * h * T                      # v_k = -g k h, y_N = -g h^2 N (N + 1) / 2
+    # Worst-case float32 rounding: every substep rounds the position (<= ulp/2) and the
+    # velocity re-read from it; an error made at step k shifts all later positions by
+    # (N - k + 1) times itself.
+    yk = -0.5 * G * h * h * np.arange(1, n + 1) * np.arange(2, n + 2)
+    bound32 = float(np.sum((n - np.arange(1, n + 1) + 1) * np.spacing(np.abs(yk).astype(np.float32))))
+    assert bound32 < 0.1 * predicted, "the float32 bound must leave the scheme's error visible"
+    np.testing.assert_allclose(err, predicted, atol=bound32)
+    # Symplectic Euler gets the velocity of a constant force exactly: v_N = -g T.
+    np.testing.assert_allclose(v[:, 1], -G * T, atol=n * float(np.spacing(np.float32(abs(yk[-1])))) / h)
+    np.testing.assert_array_equal(v[:, 0], 0.0)
+
+
+def test_simple_pendulum_period():
+    """A pinned one-rod rope swings with the simple pendulum's finite-amplitude period 2 pi sqrt(L/g) (1 + theta0^2/16)."""
+    L, theta0, fps = 0.5, math.radians(8.0), 60
+    bob0 = (L * math.sin(theta0), -L * math.cos(theta0), 0.0)
+    sim = _sandbox(_rod_level((0.0, 0.0, 0.0), bob0, pins=("start",), fps=fps, substeps=10))
+    T0 = 2.0 * math.pi * math.sqrt(L / G)
+    frames = int(3.5 * T0 * fps) + 10
+    xs = [sim.rope_positions("rod")[1].astype(np.float64)]
+    for _ in range(frames):
+        sim.step()
+        xs.append(sim.rope_positions("rod")[1].astype(np.float64))
+    xs = np.array(xs)
+    x = xs[:, 0]
+    t = np.arange(len(x)) / fps
+    k = np.flatnonzero(np.sign(x[:-1]) * np.sign(x[1:]) < 0)
+    crossings = t[k] + (t[k + 1] - t[k]) * x[k] / (x[k] - x[k + 1])  # linear interpolation
+    assert len(crossings) >= 7
+    period = (crossings[6] - crossings[0]) / 3.0
+    expected = T0 * (1.0 + theta0**2 / 16.0)
+    # Error budget (relative): interpolating a sine at its zero crossing errs by
+    # O((w dt)^3) ~ 1e-5; the symplectic step shifts the frequency by (w h)^2 / 24 ~ 2e-6;
+    # the numerical damping (amplitude loss < 10 % below, zeta < 3e-3) by zeta^2 / 2 < 1e-5;
+    # float32 positions re-read as velocities every substep add ~1e-4 of phase noise.
+    # 5e-4 covers these and stays below the amplitude correction theta0^2/16 = 1.2e-3,
+    # so the small-angle period T0 alone would fail.
+    assert period == pytest.approx(expected, rel=5e-4)
+    assert abs(period / T0 - 1.0) > 5e-4
+    first = np.abs(x[: int(T0 * fps)]).max()
+    last = np.abs(x[-int(T0 * fps):]).max()
+    assert 0.9 * first < last <= first * (1.0 + 1e-6), "numerical damping is small and never adds energy"
+    np.testing.assert_allclose(np.linalg.norm(xs, axis=1), L, rtol=1e-5)
+
+
+# ------------------------------------------------------------------ invariants on rope_hang
+@pytest.fixture(scope="module")
+def rope_hang_run():
+    """rope_hang for 120 frames: per-frame metrics rows, minimum capsule gaps and pinned positions."""
+    frames = 120
+    sim = Sandbox.from_level(LEVELS / "rope_hang.yaml", arch="cpu", overrides={"sim.frames": frames})
+    world = sim.world
+    pins = np.asarray(world.data.pins)
+    x0 = world.positions()[pins].copy()
+    rows, gaps, pinned, seg_gaps = [], [], [], []
+    for _ in range(frames):
+        rows.append(sim.step())
+        gap = world.solver.ropecol.measure()
+        gaps.append(float(gap.min()))
+        seg_gaps.append(gap.copy())
+        pinned.append(world.positions()[pins].copy())
+    return {"sim": sim, "rows": rows, "gaps": np.array(gaps), "seg_gaps": np.array(seg_gaps),
+            "pins": pins, "x0": x0, "pinned": np.array(pinned)}
+
+
+def test_pinned_particles_stay_bitwise_put(rope_hang_run):
+    """Pinned rope ends keep their start positions bit for bit through 120 frames of contacts."""
+    run = rope_hang_run
+    world = run["sim"].world
+    line = world.ropes["line"]
+    # The pinned 'line' rope is really hit: some of its segments come within half a radius of another capsule.
+    seg_of_line = world.data.segment_rope == list(world.ropes).index("line")
+    assert run["seg_gaps"][:, seg_of_line].min() < 0.5 * line.radius
+    assert len(run["pins"]) == 3
+    for f in range(len(run["pinned"])):
+        np.testing.assert_array_equal(_bits(run["pinned"][f]), _bits(run["x0"]), err_msg=f"frame {f + 1}")
+
+
+def test_rope_hang_strain_within_one_percent(rope_hang_run):
+    """Every rod of every rope of rope_hang stays within 1 % of its rest length at every frame."""
+    for row in rope_hang_run["rows"]:
+        for rope in ("line", "swing", "free"):
+            assert row["strain"][rope] <= 0.01, (row["frame"], rope, row["strain"][rope])
+    assert max(max(r["strain"].values()) for r in rope_hang_run["rows"]) > 0.0
+
+
+def test_rope_hang_no_capsule_pass_through(rope_hang_run):
+    """No two rope capsules of rope_hang overlap by more than 10 % of a radius at any frame."""
+    radius = min(r.radius for r in rope_hang_run["sim"].world.ropes.values())
+    gaps = rope_hang_run["gaps"]
+    worst = int(np.argmin(gaps))
+    assert gaps.min() >= -0.1 * radius, f"frame {worst + 1}: overlap {-gaps[worst]:.2e} m"
+    assert gaps.min() < 0.5 * radius, "the ropes never touched: nothing was tested"
+
+
+# ------------------------------------------------------------------ invariants on drape_box
+def _box_sdf_from_mesh(sim: Sandbox, points: np.ndarray) -> np.ndarray:
+    """Signed distance (m) to the axis-aligned box spanned by the object's world mesh."""
+    verts, _ = sim.object_mesh("box")
+    lo, hi = verts.min(axis=0).astype(np.float64), verts.max(axis=0).astype(np.float64)
+    c, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    q = np.abs(points - c) - half
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+    return outside + np.minimum(q.max(axis=1), 0.0)
+
+
+def _drape_penetration(overrides: dict, frames: int) -> tuple[float, float, float]:
+    """(deepest box penetration, thickness, closest approach) over every 5th frame of drape_box."""
+    sim = Sandbox.from_level(LEVELS / "drape_box.yaml", arch="cpu", overrides={**overrides, "sim.frames": frames})
+    thickness = sim.world.cloths["cloth"].thickness
+    deepest, closest = -np.inf, np.inf
+    for f in range(1, frames + 1):
+        sim.step()
+        if f % 5:
+            continue
+        x = sim.cloth_positions("cloth")
+        d, _, _ = sim.world.objects.query_numpy(x)
+        np.testing.assert_allclose(d, _box_sdf_from_mesh(sim, x.astype(np.float64)), atol=1e-5)
+        deepest = max(deepest, float((-d).max()))
+        closest = min(closest, float(d.min()))
+    return deepest, thickness, closest
+
+
+def test_drape_box_no_penetration_reduced():
+    """A 41 x 41 drape_box cloth never sinks into the box deeper than 10 % of its thickness (every 5th frame)."""
+    deepest, thickness, closest = _drape_penetration({"scene.cloths.0.resolution": [41, 41]}, 60)
+    assert deepest <= 0.1 * thickness
+    assert closest < 0.75 * thickness, "the cloth never reached the box: nothing was tested"
+
+
+@pytest.mark.slow
+def test_drape_box_no_penetration_full():
+    """The full 163 x 163 drape_box cloth never sinks into the box deeper than 10 % of its thickness."""
+    deepest, thickness, closest = _drape_penetration({}, 150)
+    assert deepest <= 0.1 * thickness
+    assert closest < 0.75 * thickness
+
+
+def test_vertical_rope_pinned_at_both_ends_is_stable():
+    """A straight vertical rope pinned at both ends (collinear rods: one redundant constraint) stays put, rods within 1 %."""
+    text = _rod_level((0.0, 1.0, 0.0), (0.0, 0.6, 0.0), pins=("start", "end"), substeps=4)
+    sim = _sandbox(text.replace("segments: 1", "segments: 8"))
+    x0 = sim.rope_positions("rod")
+    for _ in range(10):
+        row = sim.step()
+        assert row["retries"] == 0 and row["strain"]["rod"] <= 0.01
+    np.testing.assert_allclose(sim.rope_positions("rod"), x0, atol=1e-3)
+
+
+# ------------------------------------------------------------------ stability
+def test_explosion_rolls_back_and_raises(monkeypatch):
+    """A frame that keeps blowing up is retried with doubled substeps, then raises SimulationUnstable and keeps the last good state."""
+    sim = _sandbox(_rod_level((0.0, 1.0, 0.0), (0.01, 1.0, 0.0), gravity=(0.0, -1e9, 0.0), substeps=10,
+                              max_retries=3))
+    world = sim.world
+    tried = []
+    physics = world._physics
+
+    def spy(substeps, profile):
+        tried.append(substeps)
+        physics(substeps, profile)
+
+    monkeypatch.setattr(world, "_physics", spy)
+    x0, v0 = world.positions().copy(), world.velocities().copy()
+    with pytest.raises(SimulationUnstable) as info:
+        sim.step()
+    assert tried == [10, 20, 40, 80]
+    message = str(info.value)
+    assert "frame 0" in message and "3 retries" in message and "80 substeps" in message
+    assert "200 m/s" in message
+    x, v = world.positions(), world.velocities()
+    assert np.isfinite(x).all() and np.isfinite(v).all()
+    np.testing.assert_array_equal(_bits(x), _bits(x0))
+    np.testing.assert_array_equal(_bits(v), _bits(v0))
+    assert sim.frame == 0 and sim.time == 0.0
+
+
+def test_one_retry_is_enough():
+    """A landing that leaves too much speed with 1 substep succeeds on its single retry with 2, keeping the retried result."""
+    fps, r = 60, 1e-3
+    dt = 1.0 / fps
+    # A drop of 0.3 g dt^2 lands within the frame: with 1 substep it ends at 0.3 g dt,
+    # with 2 substeps (first half in the air) at 0.1 g dt.
+    y0 = r + 0.3 * G * dt * dt
+    sim = _sandbox(_rod_level((0.0, y0, 0.0), (0.01, y0, 0.0), ground="{height: 0.0, friction: 0.5}",
+                              fps=fps, substeps=1, max_retries=1, radius=r))
+    sim.world.explode_speed = 0.2 * G * dt
+    row = sim.step()
+    assert row["retries"] == 1
+    assert sim.world.retries_total == 1
+    v = sim.world.velocities()
+    np.testing.assert_allclose(v[:, 1], -0.1 * G * dt, rtol=1e-3)
+    np.testing.assert_allclose(sim.rope_positions("rod")[:, 1], r, rtol=1e-5)
+    assert row["max_speed"] < sim.world.explode_speed
+    row = sim.step()
+    assert row["retries"] == 0 and sim.frame == 2
