@@ -211,8 +211,9 @@ class World:
             self.state.restore(snap)
             for (k, (p, r)) in zip(self.moving, obj_snap):
                 self.objects.place(k, p, r)
-            self.last_retries += 1
-            self.retries_total += 1
+            if attempt < self.max_retries:  # a retry follows
+                self.last_retries += 1
+                self.retries_total += 1
             substeps *= 2
         raise SimulationUnstable(
             f"frame {self.frame}: NaN or speed above {self.explode_speed:g} m/s after "
