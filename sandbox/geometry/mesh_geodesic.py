@@ -39,15 +39,6 @@ SITES = ("top", "bottom", "front", "back", "left", "right")
 _PASSAGE_SLOPE = float(np.tan(np.radians(15.0)))
 """Largest start-angle correction (as a tangent) for a passage to count as reaching q."""
 
-_SITE_AXES = {
-    "top": (0.0, 1.0, 0.0),
-    "bottom": (0.0, -1.0, 0.0),
-    "front": (0.0, 0.0, 1.0),
-    "back": (0.0, 0.0, -1.0),
-    "left": (-1.0, 0.0, 0.0),
-    "right": (1.0, 0.0, 0.0),
-}
-
 
 class SurfaceGeodesics:
     """Geodesic queries on one object surface, with the expensive parts cached.
@@ -84,6 +75,7 @@ class SurfaceGeodesics:
         self.mean_edge = float(self.mesh.edges_unique_length.mean())
         self.diagonal = float(np.linalg.norm(self.mesh.extents))
         self.centre = np.asarray(self.mesh.bounds, dtype=np.float64).mean(axis=0)
+        self._sites: dict[str, np.ndarray] | None = None  # named sites, computed on first use
         self._snap = 1e-3 * self.mean_edge
         self._aabb = igl.AABB()
         self._aabb.init(self._V, self._F)
@@ -122,7 +114,8 @@ class SurfaceGeodesics:
         +y), ``bottom`` (-y), ``front`` (+z), ``back`` (-z), ``left`` (-x),
         ``right`` (+x). When that ray misses (e.g. through a torus hole), the
         site is the outermost vertex along the axis that is nearest the axis
-        line (ties: larger z, then larger x), as in ``sandbox.objects.sites``.
+        line (ties: larger z, then larger x): ``sandbox.objects.sites``
+        computes them, projected here onto the prepared mesh.
 
         Returns:
             (3,) position (m).
@@ -130,21 +123,13 @@ class SurfaceGeodesics:
         Raises:
             ValueError: Unknown name (the message lists the allowed ones).
         """
-        if name not in _SITE_AXES:
+        from sandbox.objects.sites import named_sites
+
+        if name not in SITES:
             raise ValueError(f"unknown site {name!r}; allowed: {', '.join(SITES)}")
-        axis = np.asarray(_SITE_AXES[name])
-        half = 0.5 * np.asarray(self.mesh.extents, dtype=np.float64)
-        reach = float(np.abs(axis) @ half)
-        origin = self.centre + axis * (reach + 0.1 * self.diagonal + 1e-6)
-        hits, _, _ = self.mesh.ray.intersects_location(origin[None], -axis[None])
-        if len(hits) == 0:
-            scale = max(float(np.max(self.mesh.extents)), 1e-12)
-            height = (self._V - self.centre) @ axis
-            top = self._V[height >= height.max() - 1e-6 * scale]
-            rel = top - self.centre
-            off_axis = np.round(np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1) / scale, 6)
-            return top[np.lexsort((-top[:, 0], -top[:, 2], off_axis))[0]].copy()
-        return self.project(hits[np.argmin((origin - hits) @ axis)])[0][0]
+        if self._sites is None:
+            self._sites = named_sites(self.mesh)
+        return self.project(self._sites[name])[0][0]
 
     # ------------------------------------------------------------------ queries
 
