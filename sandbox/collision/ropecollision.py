@@ -3,7 +3,7 @@
 Segments are binned by midpoint in a hash with cells of (rod length + two
 radii), so every pair that can touch is in the 27 neighbouring cells. Each
 segment gathers the XPBD correction of its own two end points from all its
-contacts; each particle then averages what its one or two segments gathered.
+contacts (normal push plus Coulomb friction on the contact's slip); each particle then averages what its one or two segments gathered.
 Same-rope pairs must be at least max(2, ceil(1 + 2 radius / rod)) segments
 apart: closer ones share a particle or overlap at rest (thick ropes).
 """
@@ -115,12 +115,24 @@ class RopeCollision:
                             wa1 = self.w[a1] * u
                             wsum = wa0 * (1.0 - u) + wa1 * u + self.w[b0] * (1.0 - v) ** 2 + self.w[b1] * v * v
                             if wsum > 1e-12:
-                                lam = (target - dist) / wsum
+                                pen = target - dist
+                                # Coulomb friction on positions: the relative slip of the two
+                                # closest points this substep, less than mu * pen is undone.
+                                slip = ((1.0 - u) * (p0 - self.st.x_prev[a0]) + u * (p1 - self.st.x_prev[a1])) \
+                                    - ((1.0 - v) * (q0 - self.st.x_prev[b0]) + v * (q1 - self.st.x_prev[b1]))
+                                slip_t = slip - slip.dot(nrm) * nrm
+                                lt = slip_t.norm()
+                                mu = 0.25 * (self.model.friction[a0] + self.model.friction[a1]
+                                             + self.model.friction[b0] + self.model.friction[b1])
+                                fric = ti.math.vec3(0.0)
+                                if lt > 1e-12:
+                                    fric = -slip_t * ti.min(1.0, mu * pen / lt)
+                                corr = (pen * nrm + fric) / wsum
                                 if wa0 > 0.0:
-                                    acc0 += lam * wa0 * nrm
+                                    acc0 += wa0 * corr
                                     n0 += 1
                                 if wa1 > 0.0:
-                                    acc1 += lam * wa1 * nrm
+                                    acc1 += wa1 * corr
                                     n1 += 1
             self.d0[s] = acc0
             self.d1[s] = acc1
