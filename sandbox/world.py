@@ -66,6 +66,11 @@ class World:
             objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
         )
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
+        self.reference = None
+        if sim.solver == "projection":
+            from sandbox.solvers.reference import ReferenceRopeSolver
+
+            self.reference = ReferenceRopeSolver(self, iterations=max(1, min(3, self.iterations)))
         self.frame = 0
         self.ticks = 0
         self.time = 0.0
@@ -174,6 +179,11 @@ class World:
 
     def _physics(self, substeps: int, profile: bool) -> None:
         dt = self.dt / substeps
+        if self.reference is not None:
+            if self.moving:
+                self._move_objects(self.time + self.dt, self.dt)
+            self.reference.frame(substeps)
+            return
         self.solver.begin_frame()
         if profile:
             self.solver.timings = {}
