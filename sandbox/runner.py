@@ -125,7 +125,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         if opts.progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=n, desc=level.name, unit="frame", leave=False)
+            bar = tqdm(total=n, desc=level.name, unit="frame", leave=False, disable=None)  # None: off when stderr is not a terminal
         last_state = world.fsm.state if world.fsm else ""
         with _deferred_sigint() as sigint:
             _frames(sim, world, n, log, summary, recorder, bar, frame_ms, systems, stages, last_state, sigint)

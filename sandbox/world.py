@@ -122,9 +122,13 @@ class World:
         return self.state.v.to_numpy()
 
     def _rope(self, name: str) -> RopeRange:
-        if name not in self.ropes:
-            raise KeyError(f"no rope named {name!r}; ropes: {', '.join(self.ropes) or '(none)'}")
-        return self.ropes[name]
+        """A rope, or a strand of one: ``"R"`` or ``"R[i0:i1]"`` (see ``sandbox.model.strands``)."""
+        from sandbox.model.strands import parse_strand, strand_range
+
+        base = parse_strand(name)[0] if "[" in name else name
+        if base not in self.ropes:
+            raise KeyError(f"no rope named {base!r}; ropes: {', '.join(self.ropes) or '(none)'}")
+        return self.ropes[base] if base == name else strand_range(self.ropes[base], name)
 
     def _cloth(self, name: str) -> ClothRange:
         if name not in self.cloths:
@@ -139,12 +143,12 @@ class World:
     def site_particles(self, body: str, site) -> np.ndarray:
         """Global particle indices of a named site of a rope or cloth.
 
-        Rope sites: ``start``, ``end``, an index, or ``[i0, i1]`` (a range, end
-        exclusive). Cloth sites: a corner ``A``-``D``, ``center``, ``[i, j]``,
+        Rope (or strand ``R[i0:i1]``) sites: ``start``, ``end``, ``all``, an
+        index, or ``[i0, i1]`` (a range, end exclusive). Cloth sites: a corner ``A``-``D``, ``center``, ``[i, j]``,
         or ``line1``-``line4`` (a control line).
         """
-        if body in self.ropes:
-            r = self.ropes[body]
+        if body in self.ropes or "[" in body:
+            r = self._rope(body)  # a rope or a strand R[i0:i1]; indices count from the strand's start
             k = r.end - r.start
             if site == "start":
                 return np.array([r.start])
@@ -301,8 +305,8 @@ class World:
 
     def body_scale(self, name: str) -> float:
         """Length scale of a body for relative penetration: rope radius or cloth thickness (m)."""
-        if name in self.ropes:
-            return self.ropes[name].radius
+        if name in self.ropes or "[" in name:
+            return self._rope(name).radius
         return self._cloth(name).thickness
 
     def pin_drift(self) -> float:

@@ -28,10 +28,15 @@ class RopeCollision:
         gap: (s,) f32, m, min over contacts of distance minus radii (metrics).
     """
 
-    def __init__(self, model, state, w) -> None:
+    def __init__(self, model, state, w, hit=None, normal=None) -> None:
         self.model = model
         self.st = state
         self.w = w
+        # Optional (n,) contact flag and normal fields: a pushed particle records
+        # its push direction there for the chain solve (see rope_chain).
+        self.record = hit is not None
+        self.hit = hit
+        self.normal = normal
         d = model.data
         s = len(d.segments)
         self.s = s
@@ -155,6 +160,11 @@ class RopeCollision:
                 cnt += self.c1[sb]
             if cnt > 0:
                 self.st.x[i] = self.st.x[i] + acc / ti.cast(cnt, ti.f32)
+                if ti.static(self.record):
+                    la = acc.norm()
+                    if la > 1e-12:
+                        self.hit[i] = 1.0
+                        self.normal[i] = acc / la
 
     @ti.func
     def solve_f(self):

@@ -13,30 +13,37 @@ import numpy as np
 
 
 def _bodies(world, of) -> list[str]:
+    """Body names (ropes, cloths) or strands (``R[i0:i1]``) that ``of`` names; all bodies for None."""
     names = list(world.ropes) + list(world.cloths)
     if of is None:
         return names
     return [of] if isinstance(of, str) else list(of)
 
 
+def _whole(names: list[str]) -> list[str]:
+    """The bodies behind strands: per-body run maxima are kept per whole rope."""
+    return list(dict.fromkeys(n.split("[", 1)[0].strip() for n in names))
+
+
 def _max_strain(world, of) -> float:
-    return max((world.run_max["strain"].get(n, 0.0) for n in _bodies(world, of)), default=0.0)
+    return max((world.run_max["strain"].get(n, 0.0) for n in _whole(_bodies(world, of))), default=0.0)
 
 
 def _max_penetration(world, of) -> float:
-    return max((world.run_max["penetration"].get(n, 0.0) for n in _bodies(world, of)), default=0.0)
+    return max((world.run_max["penetration"].get(n, 0.0) for n in _whole(_bodies(world, of))), default=0.0)
 
 
 def _max_penetration_ratio(world, of) -> float:
     return max(
-        (world.run_max["penetration"].get(n, 0.0) / world.body_scale(n) for n in _bodies(world, of)), default=0.0
+        (world.run_max["penetration"].get(n, 0.0) / world.body_scale(n) for n in _whole(_bodies(world, of))),
+        default=0.0
     )
 
 
 def _final_strain(world, of) -> float:
     m = world.solver.measure()
     bodies = list(world.ropes) + list(world.cloths)
-    return max((float(m["strain"][bodies.index(n)]) for n in _bodies(world, of)), default=0.0)
+    return max((float(m["strain"][bodies.index(n)]) for n in _whole(_bodies(world, of))), default=0.0)
 
 
 def _fsm_state(world, of) -> str:
@@ -99,6 +106,19 @@ def _linking_number(world, of) -> float:
                                 world.rope_positions(names[1]).astype(np.float64)))
 
 
+def _knot(world, of) -> str:
+    """Name of the knot tied in one rope, or between two ropes joined at their standing ends."""
+    from sandbox.geometry.knots import identify_knot, identify_two_ropes
+
+    names = _bodies(world, of)
+    if len(names) == 1:
+        return identify_knot(world.rope_positions(names[0]).astype(np.float64)).name
+    if len(names) == 2:
+        return identify_two_ropes(world.rope_positions(names[0]).astype(np.float64),
+                                  world.rope_positions(names[1]).astype(np.float64), join="standing").name
+    raise ValueError("knot needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]' (a knot between two)")
+
+
 METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "max_strain": ("largest relative rod/edge stretch |l - r| / r over the run", _max_strain),
     "final_strain": ("largest relative rod/edge stretch at the end", _final_strain),
@@ -111,6 +131,8 @@ METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "fsm_state": ("the FSM's state at the end (success, failure or a state name)", _fsm_state),
     "winding_number": ("turns of the wound part of rope C around rope T (paper Eq. 1), of: [C, T]", _winding_number),
     "linking_number": ("Gauss linking number of two ropes closed far away, of: [A, B]", _linking_number),
+    "knot": ("knot tied in a rope closed far away (unknot, trefoil_left/right, figure_eight, granny_left/right, "
+             "square, unknown), of: R; or between two ropes joined at their first particles, of: [A, B]", _knot),
 }
 """Metric name -> (description, function)."""
 

@@ -164,6 +164,18 @@ def check_criteria(
         else:
             continue
         for path, target in targets:
+            if isinstance(target, str) and "[" in target:
+                from sandbox.model.strands import parse_strand
+
+                try:
+                    base = parse_strand(target)[0]
+                except ValueError as exc:
+                    out.append(Finding(path, str(exc)))
+                    continue
+                if base not in names["rope"]:
+                    out.append(Finding(path, f"strand {target!r}: unknown rope {base!r}; ropes: "
+                                             f"{', '.join(names['rope']) or '(none)'}"))
+                continue
             if isinstance(target, str) and target not in known:
                 out.append(Finding(
                     path, f"unknown target {target!r}; allowed: {listing or '(none)'}"

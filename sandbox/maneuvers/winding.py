@@ -53,8 +53,7 @@ class Winding(Maneuver):
         xc = w.rope_positions(p.active)
         xt = w.rope_positions(p.target)
         if p.start == "nearest":
-            d = np.linalg.norm(xc[:, None, :] - xt[None, :, :], axis=2).min(axis=1)
-            self.i0 = int(np.argmin(d))
+            self.i0 = self._crossing_particle(xc, xt)
         else:
             self.i0 = int(p.start) % len(xc)
         self.cross = xc[self.i0].astype(np.float64)
@@ -71,16 +70,44 @@ class Winding(Maneuver):
                             f"the winding needs {len(self.targets) - 1}")
             self.targets = self.targets[: n_left + 1]
         self.n = len(self.targets)
+        self.n_max = n_left + 1  # particles available after the crossing
         self.pos = xc[self.i0].astype(np.float64)
+        # Only the current particle is constrained: a hand that held C's wound
+        # side (e.g. its tip during a Crossing) lets go now.
+        after = np.arange(self.i0 + 1, len(xc)) if p.direction > 0 else np.arange(0, self.i0)
+        held = self.c.start + after[w.control.is_driven(self.c.start + after).astype(bool)] if len(after) else after
+        if len(held):
+            w.control.release(held)
         self.x_hat = self.geodesic.x_hat
         w.windings = getattr(w, "windings", {})
         w.windings[(p.active, p.target)] = {"particles": self._particle(0), "x_hat": self.x_hat}
 
+    def _crossing_particle(self, xc: np.ndarray, xt: np.ndarray) -> int:
+        """C's particle at the crossing: nearest the X a Crossing recorded, else nearest T.
+
+        For two strands of one rope, particles within a tube's half turn of
+        each other along the rope are not a crossing (they are the same bend).
+        """
+        p, w = self.params, self.world
+        x = getattr(w, "crossings", {}).get((p.active, p.target))
+        if x is not None:
+            return int(np.argmin(np.linalg.norm(xc - x, axis=1)))
+        d = np.linalg.norm(xc[:, None, :] - xt[None, :, :], axis=2)
+        if p.active.split("[", 1)[0].strip() == p.target.split("[", 1)[0].strip():
+            gi = np.arange(self.c.start, self.c.end)[:, None]
+            gj = np.arange(self.t.start, self.t.end)[None, :]
+            near = np.pi * self.R / min(self.c.rod_length, self.t.rod_length) + 2
+            d = np.where(np.abs(gi - gj) > near, d, np.inf)
+        return int(np.argmin(d.min(axis=1)))
+
     def _targets(self, xt: np.ndarray) -> np.ndarray:
-        from sandbox.geometry.tube import Tube, sample_targets, trace_geodesic
+        from sandbox.geometry.tube import Tube, sample_targets, smooth_axis, trace_geodesic
 
         p = self.params
-        tube = Tube(xt.astype(np.float64), self.R)
+        # T is followed on the scale of the tube: kinks where C presses on it
+        # would otherwise make G (and the number of targets) flicker.
+        tube = Tube(smooth_axis(xt, 2.0 * self.R), self.R)
+        self.tube = tube
         self.geodesic = trace_geodesic(tube, self.cross, theta=np.radians(p.theta), w0=p.w0,
                                        handedness=p.handedness, along=p.along)
         return sample_targets(self.geodesic, self.c.rod_length)
@@ -98,15 +125,21 @@ class Winding(Maneuver):
         if self.ticks % p.refresh == 0 and moved > 0.1 * self.R:
             # T has moved: re-trace G on its current tube from the crossing carried along.
             self.cross = xt[self.j0] + self.offset
-            self.targets = self._targets(xt)[: self.n]
+            self.targets = self._targets(xt)[: self.n_max]
             self.xt_traced = xt.copy()
-            self.n = min(self.n, len(self.targets))
+            self.n = len(self.targets)  # the count follows G: it may grow or shrink by one or two
         idx = self._particle(self.k)
         target = self.targets[min(self.k, self.n - 1)]
         step = p.speed / w.fps
         d = target - self.pos
         dist = float(np.linalg.norm(d))
         self.pos = target.copy() if dist <= step else self.pos + d * (step / dist)
+        # Intermediate targets stay outside the bounding tube: a driven particle
+        # is kinematic, and a straight path through T would drag T along.
+        s_ax, _, on_tube = self.tube.project(self.pos)
+        axis = self.tube.frame(s_ax)[0][0]
+        if np.linalg.norm(self.pos - axis) < self.R:
+            self.pos = on_tube
         w.control.drive([idx], self.pos[None, :])
         x = w.positions()[idx]
         self.tick_in_particle += 1

@@ -92,16 +92,20 @@ class XPBDSolver:
         self.stretch_only = ti.field(ti.i32, shape=max(model.n_bodies, 1))
         self.stretch_only.from_numpy(np.array(
             [0] * len(model.data.ropes) + [1] * len(model.data.cloths) + [0] * (model.n_bodies == 0), np.int32))
-        if self.has_ground or self.has_objects:
+        # Contact normals are kept per substep wherever something can touch a
+        # particle (ground, objects, other rope segments): the chain solve
+        # then leaves the motion along them to the contacts.
+        self.has_contact_normals = self.has_ground or self.has_objects or model.s >= 3
+        if self.has_contact_normals:
             self.c_normal = ti.Vector.field(3, ti.f32, shape=model.n)
             self.c_dv = ti.field(ti.f32, shape=model.n)
             self.c_vel = ti.Vector.field(3, ti.f32, shape=model.n)
             self.c_hit = ti.field(ti.f32, shape=model.n)
+        contact = (self.c_hit, self.c_normal) if self.has_contact_normals else (None, None)
         cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
-        self.ropecol = RopeCollision(model, state, self.w) if model.s >= 3 else None
+        self.ropecol = RopeCollision(model, state, self.w, *contact) if model.s >= 3 else None
         groups = build_chains(model.data)
-        contact = (self.c_hit, self.c_normal) if (self.has_ground or self.has_objects) else (None, None)
         self.inext = ChainProjection(model, state, self.w, groups, *contact) if groups else None
         pre = [PREDICT]
         if self.selfcol is not None:
@@ -121,7 +125,13 @@ class XPBDSolver:
             it.append(SELF_COLLIDE)
         if self.has_ground or self.has_objects:
             it.append(CONTACTS)  # again: contacts have the last word in every iteration
-        self.stages = tuple(pre + it * self.iterations + [VELOCITIES])
+        post = []
+        if self.ropecol is not None and self.inext is not None:
+            # Rope lengths have the last word: a capsule push leaves a rod
+            # stretched by up to the overlap it removed, the chain step
+            # restores Eq. 2 exactly and moves particles only along the rods.
+            post.append(ROPE_INEXT)
+        self.stages = tuple(pre + it * self.iterations + post + [VELOCITIES])
         # The same substep without cloth self-collision, for substeps that skip it.
         self.stages_lite = tuple(s for s in self.stages if s not in (SELF_HASH, SELF_COLLIDE))
         self.self_collision_every = int(self_collision_every)
@@ -196,6 +206,7 @@ class XPBDSolver:
                 if self.c_dv[i] > 0.0:
                     v = friction_velocity(v, self.c_normal[i], self.c_dv[i], self.c_vel[i])
                     self.c_dv[i] = 0.0
+            if ti.static(self.has_contact_normals):
                 self.c_hit[i] = 0.0
             st.v[i] = v
 

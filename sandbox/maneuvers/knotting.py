@@ -1,0 +1,287 @@
+"""Crossing and Tightening: the steps around a winding that make a knot (paper §4, §4.1).
+
+A knot is crossings and windings repeated (paper Fig. 3): ``Crossing`` lifts
+two strands and brings them across each other at a point X above the middle
+of their constrained bottom points; ``Winding`` (``winding.py``) winds one
+around the other from X; ``Tightening`` pulls the ends apart until the knot
+is tight. Strands are ropes or runs of one rope (``R[i0:i1]``), so the same
+steps tie a self-knot (one rope crossed with itself) and knots between two
+ropes or two control lines.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Union
+
+import numpy as np
+import pydantic
+
+from sandbox.maneuvers.base import Maneuver, Params, Status, register
+
+Site = Union[str, int]
+Vec3 = tuple[float, float, float]
+_UP = np.array([0.0, 1.0, 0.0])
+
+
+def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    n = float(np.linalg.norm(v))
+    return v / n if n > 1e-9 else fallback
+
+
+def _other_end(site: Site) -> Site:
+    return {"end": "start", "start": "end", -1: 0, 0: -1}.get(site, "start")
+
+
+def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0.9, elevation=45.0):
+    """Where the tips go so that strands C and T cross at X (paper §4.1, Fig. 4).
+
+    X sits above the midpoint of the two bottom points at ``height``. In the
+    frame x (horizontal, from C's bottom towards T's), y (up), z = x cross y,
+    C passes X at +z * sign * gap / 2 and T at -z * sign * gap / 2; beyond X
+    each strand rises at ``elevation`` degrees towards the other's side, so
+    that their projections on the x-y plane cross at X. The tips are placed
+    so that each strand is ``slack`` of its length from bottom to tip.
+
+    Args:
+        base_c, base_t: ``(3,)`` bottom points of C and T, m.
+        len_c, len_t: strand lengths, m.
+        height: X above the bottoms' midpoint, m.
+        sign: +1 (C in front, on +z) or -1.
+        gap: separation of the strands at X, m.
+        slack: bottom-to-tip distance over the strand length.
+        elevation: angle of the strands above the horizontal beyond X, degrees.
+
+    Returns:
+        ``(X, tip_c, tip_t, xhat, zhat)``, each ``(3,)``.
+    """
+    base_c, base_t = np.asarray(base_c, float), np.asarray(base_t, float)
+    d = base_t - base_c
+    d[1] = 0.0
+    xhat = _unit(d, np.array([1.0, 0.0, 0.0]))
+    zhat = np.cross(xhat, _UP)
+    x = 0.5 * (base_c + base_t) + height * _UP
+    el = np.radians(elevation)
+    out = []
+    for base, length, side, s in ((base_c, len_c, 1.0, sign), (base_t, len_t, -1.0, -sign)):
+        through = x + s * 0.5 * gap * zhat
+        rise = side * np.cos(el) * xhat + np.sin(el) * _UP
+        reach = max(slack * length - float(np.linalg.norm(through - base)), 0.1 * length)
+        out.append(through + reach * rise)
+    return x, out[0], out[1], xhat, zhat
+
+
+class CrossingParams(Params):
+    active: str  # strand C
+    target: str  # strand T
+    active_tip: Site = "end"  # C's particle that is moved (held by the hand)
+    target_tip: Site | None = "end"  # T's particle that is moved; None keeps T where it is
+    active_base: Site | None = None  # C's constrained bottom point (default: the end opposite its tip)
+    target_base: Site | None = None
+    height: Annotated[float, pydantic.Field(gt=0)] = 0.15  # m, X above the bottoms
+    sign: Literal[1, -1] = 1  # +1: C passes in front of T (on +z)
+    gap: Annotated[float, pydantic.Field(ge=0)] | None = None  # m; default 1.5 (r_C + r_T)
+    slack: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.9
+    elevation: Annotated[float, pydantic.Field(gt=0, lt=90)] = 45.0  # degrees
+    lift: Annotated[float, pydantic.Field(ge=0)] = 0.05  # m, tips rise first by this much
+    speed: Annotated[float, pydantic.Field(gt=0)] = 0.5  # m/s of the tips
+    tolerance: Annotated[float, pydantic.Field(gt=0)] = 0.005  # m
+
+
+@register
+class Crossing(Maneuver):
+    """Bring strands ``active`` (C) and ``target`` (T) across each other at X (paper §4.1).
+
+    The tips rise by ``lift``, move sideways to their own side of the
+    crossing plane (C to +z sign gap, T to -z sign gap) and then to their
+    targets (``crossing_targets``), so that they never meet on the way. Done
+    when the tips are there and the strands pass within ``gap`` + 2 radii of
+    X; the tips stay held. X is recorded for a following ``Winding``.
+    """
+
+    name = "Crossing"
+    Params = CrossingParams
+
+    def start(self) -> None:
+        p, w = self.params, self.world
+        self.c = w._rope(p.active)
+        self.t = w._rope(p.target)
+        x = w.positions().astype(np.float64)
+        base_c = w.site_particles(p.active, p.active_base if p.active_base is not None else _other_end(p.active_tip))
+        tip_t_site = p.target_tip if p.target_tip is not None else "end"
+        base_t = w.site_particles(p.target, p.target_base if p.target_base is not None else _other_end(tip_t_site))
+        gap = p.gap if p.gap is not None else 1.5 * (self.c.radius + self.t.radius)
+        self.gap = gap
+        len_c = self.c.rod_length * (self.c.end - self.c.start - 1)
+        len_t = self.t.rod_length * (self.t.end - self.t.start - 1)
+        self.x, tip_c, tip_t, self.xhat, zhat = crossing_targets(
+            x[base_c].mean(axis=0), x[base_t].mean(axis=0), len_c, len_t,
+            height=p.height, sign=p.sign, gap=gap, slack=p.slack, elevation=p.elevation)
+        self.moves = []  # (particle indices, current command, waypoints)
+        plans = [(p.active, p.active_tip, tip_c, p.sign)]
+        if p.target_tip is not None:
+            plans.append((p.target, p.target_tip, tip_t, -p.sign))
+        for body, site, goal, s in plans:
+            idx = w.site_particles(body, site)
+            pos = x[idx].mean(axis=0)
+            side = s * (0.5 * gap + 2.0 * max(self.c.radius, self.t.radius)) * zhat
+            up = pos + p.lift * _UP
+            up_side = up - float((up - self.x) @ zhat) * zhat + side  # into its own z plane
+            ways = [up, up_side, goal + (side - s * 0.5 * gap * zhat), goal]
+            self.moves.append((idx, pos, ways))
+            w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+        self.total = sum(float(np.linalg.norm(np.diff(np.vstack([m[1], *m[2]]), axis=0), axis=1).sum())
+                         for m in self.moves) or 1.0
+        self.travelled = 0.0
+        w.crossings = getattr(w, "crossings", {})
+        w.crossings[(p.active, p.target)] = self.x.copy()
+
+    def update(self) -> Status:
+        p, w = self.params, self.world
+        self.ticks += 1
+        arrived = True
+        for k, (idx, pos, ways) in enumerate(self.moves):
+            step = p.speed / w.fps
+            while step > 0 and ways:
+                d = ways[0] - pos
+                dist = float(np.linalg.norm(d))
+                if dist <= step:
+                    pos = ways.pop(0)
+                    step -= dist
+                    self.travelled += dist
+                else:
+                    pos = pos + d * (step / dist)
+                    self.travelled += step
+                    step = 0.0
+            self.moves[k] = (idx, pos, ways)
+            w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+            arrived &= not ways
+        self.progress = min(1.0, self.travelled / self.total)
+        if not arrived:
+            return Status.RUNNING
+        x = w.positions()
+        tips_ok = all(np.linalg.norm(x[idx].mean(axis=0) - pos) <= p.tolerance for idx, pos, _ in self.moves)
+        near = self.miss_distance(x)
+        if tips_ok and near <= self.gap + 2.0 * (self.c.radius + self.t.radius):
+            self.progress = 1.0
+            return Status.DONE
+        if self.ticks > 4 * w.fps + self.total / p.speed * w.fps:
+            self.message = f"strands pass {near:.3f} m from X after the tips arrived (allowed {self.gap:.3f} m + radii)"
+            return Status.FAILED
+        return Status.RUNNING
+
+    def miss_distance(self, x: np.ndarray) -> float:
+        """Largest distance from X to the nearest particle of C or of T (m)."""
+        dc = np.linalg.norm(x[self.c.start:self.c.end] - self.x, axis=1).min()
+        dt = np.linalg.norm(x[self.t.start:self.t.end] - self.x, axis=1).min()
+        return float(max(dc, dt))
+
+    def metrics(self) -> dict[str, float]:
+        return {"miss": self.miss_distance(self.world.positions())}
+
+
+class Pull(Params):
+    """One end pulled by Tightening: a site of a rope or strand and where it goes."""
+
+    body: str
+    site: Site = "end"
+    direction: Vec3 | Literal["away"] = "away"  # "away": from the knot's centre
+
+
+class TighteningParams(Params):
+    pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]
+    knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
+    speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
+    distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
+    max_strain: Annotated[float, pydantic.Field(gt=0)] = 0.003  # rod strain that means "tight"
+    max_overlap: Annotated[float, pydantic.Field(gt=0)] = 0.05  # capsule overlap / radius that means "tight"
+
+
+@register
+class Tightening(Maneuver):
+    """Pull ends apart until the knot is tight (paper §4, step 4).
+
+    Each pulled site moves along its direction at ``speed``. The knot is tight
+    when pulling more would stretch a rod by more than ``max_strain`` or press
+    two rope capsules into each other by more than ``max_overlap`` of a
+    radius: collisions stay hard, so the last step is taken back and the ends
+    are held there. Done when tight or after ``distance``.
+    """
+
+    name = "Tightening"
+    Params = TighteningParams
+
+    def start(self) -> None:
+        p, w = self.params, self.world
+        x = w.positions().astype(np.float64)
+        names = p.knot or [q.body for q in p.pulls]
+        self.strands = [w._rope(n) for n in dict.fromkeys(names)]
+        self.centre = self._knot_centre(x)
+        self.ends = []
+        for q in p.pulls:
+            idx = w.site_particles(q.body, q.site)
+            pos = x[idx].mean(axis=0)
+            if q.direction == "away":
+                d = _unit(pos - self.centre, _UP)
+            else:
+                d = _unit(np.asarray(q.direction, float), _UP)
+            self.ends.append((idx, pos, d))
+            w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+        self.pulled = 0.0
+        self.tight = False
+
+    def _knot_centre(self, x: np.ndarray) -> np.ndarray:
+        rec = getattr(self.world, "windings", {})
+        parts = [x[v["particles"]] for v in rec.values() if len(v["particles"])]
+        if parts:
+            return np.vstack(parts).mean(axis=0)
+        return np.vstack([x[s.start:s.end] for s in self.strands]).mean(axis=0)
+
+    def _tension(self, x: np.ndarray) -> tuple[float, float]:
+        """Largest rod strain and capsule overlap / radius of the knot's ropes now."""
+        strain = 0.0
+        for s in self.strands:
+            seg = np.linalg.norm(np.diff(x[s.start:s.end], axis=0), axis=1)
+            strain = max(strain, float(np.abs(seg / s.rod_length - 1.0).max()))
+        overlap = 0.0
+        rc = self.world.solver.ropecol
+        if rc is not None:
+            gap = rc.measure()
+            seg_rope = self.world.data.segment_rope
+            names = [r.name for r in self.world.data.ropes]
+            for s in self.strands:
+                base = s.name.split("[", 1)[0].strip()
+                g = gap[seg_rope == names.index(base)]
+                if len(g):
+                    overlap = max(overlap, float(-g.min()) / s.radius)
+        return strain, overlap
+
+    def update(self) -> Status:
+        p, w = self.params, self.world
+        self.ticks += 1
+        x = w.positions().astype(np.float64)
+        strain, overlap = self._tension(x)
+        self.last = (strain, overlap)
+        step = p.speed / w.fps
+        if strain > p.max_strain or overlap > p.max_overlap:
+            # Tight: take the last step back and hold the ends there.
+            back = min(step, self.pulled)
+            self.ends = [(idx, pos - back * d, d) for idx, pos, d in self.ends]
+            for idx, pos, _ in self.ends:
+                w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+            self.tight = True
+            self.progress = 1.0
+            return Status.DONE
+        if self.pulled >= p.distance:
+            self.progress = 1.0
+            return Status.DONE
+        step = min(step, p.distance - self.pulled)
+        self.pulled += step
+        self.ends = [(idx, pos + step * d, d) for idx, pos, d in self.ends]
+        for idx, pos, _ in self.ends:
+            w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+        self.progress = self.pulled / p.distance
+        return Status.RUNNING
+
+    def metrics(self) -> dict[str, float]:
+        s, o = getattr(self, "last", (0.0, 0.0))
+        return {"pulled": self.pulled, "strain": s, "overlap": o, "tight": float(self.tight)}
