@@ -373,7 +373,7 @@ def _running_winding(
     return along * lk
 
 
-def smooth_axis(points: np.ndarray, scale: float) -> np.ndarray:
+def smooth_axis(points: np.ndarray, scale: float, max_shift: float | None = None) -> np.ndarray:
     """Low-pass a rope polyline before a tube is built on it.
 
     A loaded rope has kinks of a rod's length where other ropes press on it;
@@ -381,11 +381,14 @@ def smooth_axis(points: np.ndarray, scale: float) -> np.ndarray:
     target line varied by 13 % between consecutive frames of a winding), while
     the tube only has to follow the rope on the scale of its radius. Repeated
     [1/4, 1/2, 1/4] passes approximate a Gaussian of standard deviation
-    ``scale``; the end points stay put.
+    ``scale``; the end points stay put. With ``max_shift`` no point moves
+    further than that from where it was: a tube of radius r_C + r_T + eps on
+    an axis shifted by at most eps never cuts into the rope it bounds.
 
     Args:
         points: ``(n, 3)`` polyline, m, about evenly spaced.
         scale: smoothing length, m (0 returns a copy).
+        max_shift: largest displacement of a point, m (None: unlimited).
 
     Returns:
         ``(n, 3)`` smoothed polyline.
@@ -397,6 +400,11 @@ def smooth_axis(points: np.ndarray, scale: float) -> np.ndarray:
     passes = min(64, int(math.ceil(2.0 * (scale / max(spacing, 1e-12)) ** 2)))
     for _ in range(passes):
         y[1:-1] = 0.25 * y[:-2] + 0.5 * y[1:-1] + 0.25 * y[2:]
+    if max_shift is not None:
+        x = np.asarray(points, dtype=np.float64)
+        d = y - x
+        n = np.linalg.norm(d, axis=1, keepdims=True)
+        y = x + d * np.minimum(1.0, max_shift / np.maximum(n, 1e-300))
     return y
 
 
@@ -468,8 +476,18 @@ def trace_geodesic(
             states = np.vstack([states, new[1:]])
             pts = tube.surface(states[:, 0], states[:, 1])
         if method == "auto":
-            turns = _axis_turns_over_90(tube, states[:, 0].min(), states[:, 0].max(), t[0])
+            # Eq. 1 holds while T's axis turns less than 90 degrees over G's
+            # extent up to where G reaches w0 (what lies beyond the cut does
+            # not matter); otherwise fall back to the Gauss linking integral.
+            wind = _running_winding(tube, pts, x_t, x_hat, along, "winding")
+            hit = np.nonzero(handedness * wind >= w0)[0]
+            upto = int(hit[0]) + 1 if len(hit) else len(states)
+            turns = _axis_turns_over_90(tube, states[:upto, 0].min(), states[:upto, 0].max(), t[0])
             use = "linking" if turns else "winding"
+            if use == "winding":
+                if len(hit) or left or (len(states) - 1) * step >= max_length:
+                    break
+                continue
         wind = _running_winding(tube, pts, x_t, x_hat, along, use)
         hit = np.nonzero(handedness * wind >= w0)[0]
         if len(hit) or left or (len(states) - 1) * step >= max_length:

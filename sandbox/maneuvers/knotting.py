@@ -40,11 +40,12 @@ def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0
     C passes X at +z * sign * gap / 2 and T at -z * sign * gap / 2; beyond X
     each strand rises at ``elevation`` degrees towards the other's side, so
     that their projections on the x-y plane cross at X. The tips are placed
-    so that each strand is ``slack`` of its length from bottom to tip.
+    so that the straight distance from bottom to tip is ``slack`` of the rope
+    between them.
 
     Args:
         base_c, base_t: ``(3,)`` bottom points of C and T, m.
-        len_c, len_t: strand lengths, m.
+        len_c, len_t: rope length from each bottom point to its tip, m.
         height: X above the bottoms' midpoint, m.
         sign: +1 (C in front, on +z) or -1.
         gap: separation of the strands at X, m.
@@ -70,6 +71,25 @@ def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0
     return x, out[0], out[1], xhat, zhat
 
 
+def closest_approach(xc: np.ndarray, xt: np.ndarray, gc: np.ndarray, gt: np.ndarray, exclude: float):
+    """Where two strands pass closest: ``(distance, point on C, point on T)``.
+
+    ``gc``, ``gt`` are the particles' global indices; pairs closer than
+    ``exclude`` along one rope (the same bend of a self-knot) are skipped.
+    """
+    d = np.linalg.norm(xc[:, None, :] - xt[None, :, :], axis=2)
+    d = np.where(np.abs(gc[:, None] - gt[None, :]) > exclude, d, np.inf)
+    i, j = np.unravel_index(int(np.argmin(d)), d.shape)
+    return float(d[i, j]), xc[i], xt[j]
+
+
+def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """``point`` pulled back onto the ball around ``centre`` (a tip cannot go past its rope's reach)."""
+    v = point - centre
+    n = float(np.linalg.norm(v))
+    return point if n <= radius else centre + v * (radius / n)
+
+
 class CrossingParams(Params):
     active: str  # strand C
     target: str  # strand T
@@ -93,9 +113,11 @@ class Crossing(Maneuver):
 
     The tips rise by ``lift``, move sideways to their own side of the
     crossing plane (C to +z sign gap, T to -z sign gap) and then to their
-    targets (``crossing_targets``), so that they never meet on the way. Done
-    when the tips are there and the strands pass within ``gap`` + 2 radii of
-    X; the tips stay held. X is recorded for a following ``Winding``.
+    targets (``crossing_targets``), so that they never meet on the way; no
+    waypoint is further from a bottom point than ``slack`` of the rope between
+    them. Done when the tips are there and the strands pass within ``gap`` +
+    radii of each other; the tips stay held. Where they pass closest is
+    recorded as the crossing for a following ``Winding``.
     """
 
     name = "Crossing"
@@ -111,8 +133,11 @@ class Crossing(Maneuver):
         base_t = w.site_particles(p.target, p.target_base if p.target_base is not None else _other_end(tip_t_site))
         gap = p.gap if p.gap is not None else 1.5 * (self.c.radius + self.t.radius)
         self.gap = gap
-        len_c = self.c.rod_length * (self.c.end - self.c.start - 1)
-        len_t = self.t.rod_length * (self.t.end - self.t.start - 1)
+        # Rope length between each bottom and its tip (not the whole strand).
+        tip_c_idx = w.site_particles(p.active, p.active_tip)
+        tip_t_idx = w.site_particles(p.target, tip_t_site)
+        len_c = self.c.rod_length * abs(float(tip_c_idx.mean() - base_c.mean()))
+        len_t = self.t.rod_length * abs(float(tip_t_idx.mean() - base_t.mean()))
         self.x, tip_c, tip_t, self.xhat, zhat = crossing_targets(
             x[base_c].mean(axis=0), x[base_t].mean(axis=0), len_c, len_t,
             height=p.height, sign=p.sign, gap=gap, slack=p.slack, elevation=p.elevation)
@@ -120,13 +145,17 @@ class Crossing(Maneuver):
         plans = [(p.active, p.active_tip, tip_c, p.sign)]
         if p.target_tip is not None:
             plans.append((p.target, p.target_tip, tip_t, -p.sign))
-        for body, site, goal, s in plans:
+        bases = (x[base_c].mean(axis=0), x[base_t].mean(axis=0))
+        reach = (p.slack * len_c, p.slack * len_t)
+        for k, (body, site, goal, s) in enumerate(plans):
             idx = w.site_particles(body, site)
             pos = x[idx].mean(axis=0)
             side = s * (0.5 * gap + 2.0 * max(self.c.radius, self.t.radius)) * zhat
             up = pos + p.lift * _UP
             up_side = up - float((up - self.x) @ zhat) * zhat + side  # into its own z plane
             ways = [up, up_side, goal + (side - s * 0.5 * gap * zhat), goal]
+            # No waypoint further from the bottom than the rope allows.
+            ways = [_within(q, bases[k], max(reach[k], float(np.linalg.norm(pos - bases[k])))) for q in ways]
             self.moves.append((idx, pos, ways))
             w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
         self.total = sum(float(np.linalg.norm(np.diff(np.vstack([m[1], *m[2]]), axis=0), axis=1).sum())
@@ -158,25 +187,30 @@ class Crossing(Maneuver):
         self.progress = min(1.0, self.travelled / self.total)
         if not arrived:
             return Status.RUNNING
-        x = w.positions()
+        x = w.positions().astype(np.float64)
         tips_ok = all(np.linalg.norm(x[idx].mean(axis=0) - pos) <= p.tolerance for idx, pos, _ in self.moves)
-        near = self.miss_distance(x)
-        if tips_ok and near <= self.gap + 2.0 * (self.c.radius + self.t.radius):
+        near, at_c, at_t = self.approach(x)
+        if tips_ok and near <= self.gap + (self.c.radius + self.t.radius):
+            # The strands cross where they pass closest (gravity lets them sag
+            # below the planned X): that is where the winding starts.
+            w.crossings[(p.active, p.target)] = 0.5 * (at_c + at_t)
             self.progress = 1.0
             return Status.DONE
         if self.ticks > 4 * w.fps + self.total / p.speed * w.fps:
-            self.message = f"strands pass {near:.3f} m from X after the tips arrived (allowed {self.gap:.3f} m + radii)"
+            self.message = (f"the strands pass {near:.3f} m apart after the tips arrived "
+                            f"(a crossing needs at most {self.gap + self.c.radius + self.t.radius:.3f} m)")
             return Status.FAILED
         return Status.RUNNING
 
-    def miss_distance(self, x: np.ndarray) -> float:
-        """Largest distance from X to the nearest particle of C or of T (m)."""
-        dc = np.linalg.norm(x[self.c.start:self.c.end] - self.x, axis=1).min()
-        dt = np.linalg.norm(x[self.t.start:self.t.end] - self.x, axis=1).min()
-        return float(max(dc, dt))
+    def approach(self, x: np.ndarray):
+        """Closest approach of C and T now: ``(distance, point on C, point on T)``."""
+        same = self.params.active.split("[", 1)[0].strip() == self.params.target.split("[", 1)[0].strip()
+        exclude = (np.pi * 1.1 * (self.c.radius + self.t.radius) / self.c.rod_length + 2) if same else -1.0
+        return closest_approach(x[self.c.start:self.c.end], x[self.t.start:self.t.end],
+                                np.arange(self.c.start, self.c.end), np.arange(self.t.start, self.t.end), exclude)
 
     def metrics(self) -> dict[str, float]:
-        return {"miss": self.miss_distance(self.world.positions())}
+        return {"miss": self.approach(self.world.positions().astype(np.float64))[0]}
 
 
 class Pull(Params):
@@ -194,17 +228,21 @@ class TighteningParams(Params):
     distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
     max_strain: Annotated[float, pydantic.Field(gt=0)] = 0.003  # rod strain that means "tight"
     max_overlap: Annotated[float, pydantic.Field(gt=0)] = 0.05  # capsule overlap / radius that means "tight"
+    backoff: Annotated[float, pydantic.Field(ge=0)] = 0.01  # m each end gives back once tight
+    release_others: bool = True  # let go of every other held particle of the knot's ropes first
 
 
 @register
 class Tightening(Maneuver):
     """Pull ends apart until the knot is tight (paper §4, step 4).
 
-    Each pulled site moves along its direction at ``speed``. The knot is tight
+    Every other held particle of the knot's ropes is let go first (the last
+    wound particle a Winding keeps, hands that held the bottoms). Each pulled
+    site then moves along its direction at ``speed``. The knot is tight
     when pulling more would stretch a rod by more than ``max_strain`` or press
     two rope capsules into each other by more than ``max_overlap`` of a
-    radius: collisions stay hard, so the last step is taken back and the ends
-    are held there. Done when tight or after ``distance``.
+    radius: collisions stay hard, so the ends give back ``backoff`` and are
+    held there. Done when tight or after ``distance``.
     """
 
     name = "Tightening"
@@ -216,6 +254,14 @@ class Tightening(Maneuver):
         names = p.knot or [q.body for q in p.pulls]
         self.strands = [w._rope(n) for n in dict.fromkeys(names)]
         self.centre = self._knot_centre(x)
+        if p.release_others:
+            pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls])
+            for st in self.strands:
+                whole = w._rope(st.name.split("[", 1)[0].strip())
+                idx = np.arange(whole.start, whole.end)
+                held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
+                if len(held):
+                    w.control.release(held)
         self.ends = []
         for q in p.pulls:
             idx = w.site_particles(q.body, q.site)
@@ -263,8 +309,9 @@ class Tightening(Maneuver):
         self.last = (strain, overlap)
         step = p.speed / w.fps
         if strain > p.max_strain or overlap > p.max_overlap:
-            # Tight: take the last step back and hold the ends there.
-            back = min(step, self.pulled)
+            # Tight: give back ``backoff`` and hold the ends there, so that a
+            # taut rope does not keep grinding its contacts.
+            back = min(step + p.backoff, self.pulled)
             self.ends = [(idx, pos - back * d, d) for idx, pos, d in self.ends]
             for idx, pos, _ in self.ends:
                 w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))

@@ -34,6 +34,7 @@ class WindingParams(Params):
     tolerance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.25  # fraction of C's rod length
     refresh: Annotated[int, pydantic.Field(ge=1)] = 1  # frames between geodesic updates
     max_ticks_per_particle: Annotated[int, pydantic.Field(ge=1)] = 90
+    straighten: Annotated[float, pydantic.Field(ge=0)] = 0.0  # m of T held straight around X_T (paper §4.2)
 
 
 @register
@@ -60,6 +61,8 @@ class Winding(Maneuver):
         # X follows T: kept as an offset from T's particle nearest to it.
         self.j0 = int(np.argmin(np.linalg.norm(xt - self.cross, axis=1)))
         self.offset = self.cross - xt[self.j0]
+        xt = xt.astype(np.float64)
+        self.straight = self._straighten(xt) if p.straighten > 0 else np.zeros(0, np.int64)
         self.xt_traced = xt.astype(np.float64).copy()
         self.k = 0
         self.tick_in_particle = 0
@@ -81,6 +84,30 @@ class Winding(Maneuver):
         self.x_hat = self.geodesic.x_hat
         w.windings = getattr(w, "windings", {})
         w.windings[(p.active, p.target)] = {"particles": self._particle(0), "x_hat": self.x_hat}
+
+    def _straighten(self, xt: np.ndarray) -> np.ndarray:
+        """Hold T straight for ``straighten`` m around X_T, along T's direction there.
+
+        The particles within half that length of X_T (by index) are driven onto
+        the line through X_T along the chord of the held run, at their rest
+        spacing: the winding then starts on a straight, still piece of T.
+        ``xt`` is updated in place to the straightened layout (G is traced on
+        it). Returns their global indices.
+        """
+        w = self.world
+        half = int(round(0.5 * self.params.straighten / self.t.rod_length))
+        lo, hi = max(0, self.j0 - half), min(len(xt) - 1, self.j0 + half)
+        if hi - lo < 2:
+            return np.zeros(0, np.int64)
+        xs = xt.astype(np.float64)
+        d = xs[hi] - xs[lo]
+        d /= max(float(np.linalg.norm(d)), 1e-12)
+        run = np.arange(lo, hi + 1)
+        line = xs[self.j0] + ((run - self.j0) * self.t.rod_length)[:, None] * d
+        idx = self.t.start + run
+        w.control.drive(idx, line)
+        xt[run] = line
+        return idx
 
     def _crossing_particle(self, xc: np.ndarray, xt: np.ndarray) -> int:
         """C's particle at the crossing: nearest the X a Crossing recorded, else nearest T.
@@ -105,8 +132,10 @@ class Winding(Maneuver):
 
         p = self.params
         # T is followed on the scale of the tube: kinks where C presses on it
-        # would otherwise make G (and the number of targets) flicker.
-        tube = Tube(smooth_axis(xt, 2.0 * self.R), self.R)
+        # would otherwise make G (and the number of targets) flicker. The axis
+        # moves by at most eps, so that targets never lie inside T.
+        eps = self.R - (self.c.radius + self.t.radius)
+        tube = Tube(smooth_axis(xt, 2.0 * self.R, max_shift=eps), self.R)
         self.tube = tube
         self.geodesic = trace_geodesic(tube, self.cross, theta=np.radians(p.theta), w0=p.w0,
                                        handedness=p.handedness, along=p.along)
@@ -165,7 +194,8 @@ class Winding(Maneuver):
 
     def stop(self) -> None:
         # The last wound particle stays held (paper §4.2: constraining it keeps
-        # the winding); a later Tightening or Release frees it.
+        # the winding); a later Tightening or Release frees it. T's straightened
+        # run stays held too, so that the winding keeps its shape until then.
         if self.k < self.n:
             self.world.control.release([self._particle(self.k)])
 

@@ -1,0 +1,232 @@
+"""Crossing, Tightening, strands, the knot criterion, and the rope knot levels run headless."""
+
+import pathlib
+
+import numpy as np
+import pytest
+
+from sandbox.geometry.knots import identify_knot
+from sandbox.geometry.tube import smooth_axis
+from sandbox.levels import LevelError, load_level_from_string
+from sandbox.maneuvers.knotting import closest_approach, crossing_targets
+from sandbox.model.strands import parse_strand
+
+import sandbox.maneuvers  # noqa: F401
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+# -- strands -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ref, parsed", [
+    ("R", ("R", None, None)), ("R[10:40]", ("R", 10, 40)), ("R[40:]", ("R", 40, None)),
+    ("R[:-5]", ("R", None, -5)), (" rope_2 [ 3 : 7 ] ", ("rope_2", 3, 7)),
+])
+def test_parse_strand(ref, parsed):
+    assert parse_strand(ref) == parsed
+
+
+@pytest.mark.parametrize("ref", ["R[1:2:3]", "R[a:b]", "[1:2]", "R[1]", ""])
+def test_parse_strand_rejects_bad_refs(ref):
+    with pytest.raises(ValueError, match="bad strand"):
+        parse_strand(ref)
+
+
+def _world(text: str):
+    from sandbox.world import World
+
+    level = load_level_from_string(text, base_dir=ROOT / "levels")
+    w = World(level, base_dir=ROOT / "levels")
+    w.attach_fsm()
+    return w
+
+
+ONE_ROPE = """
+version: 1
+name: strands
+scene:
+  ropes:
+    - {name: R, points: [[0, 1, 0], [1, 1, 0]], rod_length: 0.1, radius: 0.01}
+fsm:
+  - {run: Wait}
+success:
+  - {metric: max_strain, of: "R[2:5]", max: 0.01}
+"""
+
+
+def test_strands_index_into_their_rope():
+    w = _world(ONE_ROPE)
+    assert len(w.rope_positions("R")) == 11
+    part = w._rope("R[2:5]")
+    assert (part.start, part.end, part.name) == (2, 5, "R[2:5]")
+    np.testing.assert_array_equal(w.rope_positions("R[-3:]"), w.rope_positions("R")[-3:])
+    np.testing.assert_array_equal(w.site_particles("R[4:]", "start"), [4])
+    with pytest.raises(ValueError, match="at least 2"):
+        w._rope("R[5:6]")
+    with pytest.raises(KeyError, match="no rope named 'Q'"):
+        w._rope("Q[1:3]")
+
+
+def test_criterion_on_unknown_strand_rope_is_a_level_error():
+    with pytest.raises(LevelError, match="strand 'Q\\[2:5\\]': unknown rope 'Q'"):
+        load_level_from_string(ONE_ROPE.replace('of: "R[2:5]"', 'of: "Q[2:5]"'))
+
+
+# -- geometry ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_crossing_targets_cross_at_x(sign):
+    """Bottom -> X -> tip is one rising path per strand; in the x-y plane they cross at X."""
+    bc, bt = np.array([0.2, 0.1, 0.3]), np.array([-0.2, 0.1, 0.3])
+    gap = 0.02
+    x, tc, tt, xh, zh = crossing_targets(bc, bt, 0.6, 0.6, height=0.15, sign=sign, gap=gap, slack=0.9)
+    np.testing.assert_allclose(x, [0.0, 0.25, 0.3])
+    np.testing.assert_allclose(xh, [-1, 0, 0], atol=1e-12)
+    # Each tip is slack * length from its bottom, beyond X on the other side.
+    for b, tip in ((bc, tc), (bt, tt)):
+        through = x + (np.sign((tip - x) @ zh) or 1) * 0.5 * gap * zh
+        assert np.linalg.norm(through - b) + np.linalg.norm(tip - through) == pytest.approx(0.54)
+    assert (tc - x) @ xh > 0 and (tt - x) @ xh < 0  # C ends on T's side and vice versa
+    assert np.sign((tc - x) @ zh) == sign and np.sign((tt - x) @ zh) == -sign
+
+
+def test_closest_approach_skips_the_same_bend():
+    t = np.linspace(0, 1, 11)
+    a = np.stack([t, 0 * t, 0 * t], 1)
+    b = np.stack([0.5 + 0 * t, t - 0.5, 0.05 + 0 * t], 1)
+    d, pa, pb = closest_approach(a, b, np.arange(11), np.arange(100, 111), exclude=-1)
+    assert d == pytest.approx(0.05) and pa[0] == pytest.approx(0.5) and pb[1] == pytest.approx(0.0)
+    # The same indices on one rope, excluded within 200 particles: nothing is left but inf.
+    d, _, _ = closest_approach(a, b, np.arange(11), np.arange(11), exclude=200)
+    assert d == np.inf
+
+
+def test_smooth_axis_removes_kinks_and_respects_max_shift():
+    s = np.linspace(0, 1, 51)
+    x = np.stack([s, 0.002 * (-1.0) ** np.arange(51), 0 * s], 1)  # a 2 mm zigzag
+    y = smooth_axis(x, 0.05)
+    assert np.abs(y[5:-5, 1]).max() < 1e-4
+    np.testing.assert_array_equal(y[[0, -1]], x[[0, -1]])
+    bent = np.stack([s, np.where(s < 0.5, 0.0, s - 0.5), 0 * s], 1)  # a corner
+    y = smooth_axis(bent, 0.1, max_shift=0.001)
+    assert np.linalg.norm(y - bent, axis=1).max() <= 0.001 + 1e-12
+    assert np.linalg.norm(smooth_axis(bent, 0.1) - bent, axis=1).max() > 0.005
+
+
+# -- maneuvers in a scene ------------------------------------------------------------------------
+
+TWO_ROPES = """
+version: 1
+name: cross_two
+scene:
+  gravity: [0, -9.81, 0]
+  ropes:
+    - {name: A, points: [[-0.15, 0.3, 0], [-0.15, 0.8, 0]], rod_length: 0.02, radius: 0.008}
+    - {name: B, points: [[0.15, 0.3, 0], [0.15, 0.8, 0]], rod_length: 0.02, radius: 0.008}
+sim: {fps: 60, substeps: 10, iterations: 2}
+fsm:
+  - {run: Anchoring, with: {body: A, sites: [start, end]}}
+  - {run: Anchoring, with: {body: B, sites: [start, end]}}
+  - {run: Crossing, with: {active: A, target: B, height: 0.15, sign: SIGN, slack: 0.95}, timeout: 300}
+"""
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_crossing_two_ropes_makes_a_crossing_of_the_asked_sign(sign):
+    w = _world(TWO_ROPES.replace("SIGN", str(sign)))
+    for _ in range(300):
+        w.step()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    a, b = w.rope_positions("A"), w.rope_positions("B")
+    x = w.crossings[("A", "B")]
+    assert 0.3 < x[1] < 0.6  # above the held bottoms
+    # Tips have swapped sides along x, and where they pass A is on the asked z side of B.
+    assert a[-1, 0] > 0.0 > b[-1, 0]
+    ia = np.argmin(np.abs(a[:, 0] - x[0]))
+    ib = np.argmin(np.abs(b[:, 0] - x[0]))
+    zhat = np.cross([1.0, 0, 0], [0, 1.0, 0])  # x runs from A's bottom to B's
+    assert np.sign((a[ia] - b[ib]) @ zhat) == sign
+    gap = w.solver.ropecol.measure()
+    assert gap.min() > -0.1 * 0.008
+
+
+PULL = """
+version: 1
+name: pull
+scene:
+  ropes:
+    - {name: R, points: [[-0.3, 0.5, 0], [0.3, 0.5, 0]], rod_length: 0.02, radius: 0.005}
+sim: {fps: 60, substeps: 10, iterations: 2}
+fsm:
+  - {run: Tightening, with: {pulls: [{body: R, site: start, direction: [-1, 0, 0]},
+                                     {body: R, site: end, direction: [1, 0, 0]}],
+                             speed: 0.2, distance: 0.2, max_strain: 0.003}}
+"""
+
+
+def test_tightening_stops_when_the_rope_is_taut():
+    """A straight rope pulled at both ends is taut at once: the ends give back and hold."""
+    w = _world(PULL)
+    x0 = w.rope_positions("R").copy()
+    for _ in range(120):
+        w.step()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded
+    for _ in range(30):  # the ends stay held where the maneuver left them
+        w.step()
+    x = w.rope_positions("R")
+    assert w.control.is_driven([0, len(x) - 1]).all()
+    seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    assert np.abs(seg / 0.02 - 1).max() < 0.01
+    # Held back inside the rope's reach, not pulled the full 0.2 m.
+    assert np.linalg.norm(x[-1] - x[0]) <= np.linalg.norm(x0[-1] - x0[0]) + 1e-3
+
+
+# -- headless levels -------------------------------------------------------------------------------
+
+
+def _run(level: str) -> dict:
+    from sandbox.runner import RunOptions, run_level
+
+    import tempfile
+    import json
+
+    out = pathlib.Path(tempfile.mkdtemp())
+    code, _ = run_level(ROOT / "levels" / level, RunOptions(out=out, progress=False))
+    summary = json.loads((out / "summary.json").read_text())
+    summary["exit_code"] = code
+    return summary
+
+
+def test_rope_wind_reaches_its_criteria_headless():
+    s = _run("rope_wind.yaml")
+    assert s["success"] and s["exit_code"] == 0, s["criteria"]
+
+
+def test_self_knot_ties_a_trefoil_headless():
+    s = _run("self_knot.yaml")
+    assert s["success"] and s["exit_code"] == 0, s["criteria"]
+    knot = next(c for c in s["criteria"] if c["metric"] == "knot")
+    assert knot["value"] == "trefoil_left"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("level", ["rope_wind_2.yaml", "rope_wind_3.yaml"])
+def test_more_turns_reach_their_criteria_headless(level):
+    s = _run(level)
+    assert s["success"], s["criteria"]
+
+
+def test_knot_criterion_reads_the_final_rope():
+    """The knot metric closes the rope far away: the same as identify_knot on its particles."""
+    from sandbox.io.criteria import METRICS
+
+    w = _world(ONE_ROPE)
+    assert METRICS["knot"][1](w, "R") == identify_knot(w.rope_positions("R").astype(float)).name == "unknot"
+    with pytest.raises(ValueError, match="knot needs"):
+        METRICS["knot"][1](w, ["R", "R", "R"])
