@@ -213,14 +213,28 @@ def solve_kkt(H: sp.spmatrix, g: np.ndarray, Jc: sp.spmatrix, rhs_c: np.ndarray,
     """
     if method not in LINEAR_SOLVERS:
         raise ValueError(f"method={method!r}; allowed: {LINEAR_SOLVERS}")
-    K = kkt_matrix(H, Jc, regularization)
     rhs = np.concatenate([g, rhs_c])
-    if method == "dense":
-        sol = np.linalg.solve(K.toarray(), rhs)
-    elif method == "spsolve":
-        sol = spla.spsolve(K, rhs, permc_spec=permc_spec)
+    # Two contact rows that are (nearly) the same constraint, e.g. one pair of
+    # capsules found from both sides, leave the Schur block J H^-1 J^T + d I
+    # singular up to d; SuperLU then meets an exactly zero pivot. The
+    # regularisation is raised, relative to H's scale, until it factors.
+    scale = float(np.abs(H.diagonal()).max(initial=1.0))
+    for d in (regularization, 1e-9 * scale, 1e-6 * scale):
+        K = kkt_matrix(H, Jc, max(d, regularization))
+        try:
+            if method == "dense":
+                sol = np.linalg.solve(K.toarray(), rhs)
+            elif method == "spsolve":
+                sol = spla.spsolve(K, rhs, permc_spec=permc_spec)
+            else:
+                sol = spla.splu(K, permc_spec=permc_spec).solve(rhs)
+        except (RuntimeError, np.linalg.LinAlgError):
+            continue
+        if np.all(np.isfinite(sol)):
+            break
     else:
-        sol = spla.splu(K, permc_spec=permc_spec).solve(rhs)
+        raise RuntimeError(f"the Eq. 8 system stays singular with regularisation up to {1e-6 * scale:.3g} "
+                           f"({Jc.shape[0]} active contact rows)")
     n = H.shape[0]
     return sol[:n], sol[n:]
 
