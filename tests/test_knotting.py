@@ -230,3 +230,33 @@ def test_knot_criterion_reads_the_final_rope():
     assert METRICS["knot"][1](w, "R") == identify_knot(w.rope_positions("R").astype(float)).name == "unknot"
     with pytest.raises(ValueError, match="knot needs"):
         METRICS["knot"][1](w, ["R", "R", "R"])
+
+
+BAD_REFS = """
+version: 1
+name: bad_refs
+scene:
+  ropes:
+    - {name: R, points: [[0, 1, 0], [1, 1, 0]], rod_length: 0.1, radius: 0.01}
+macros:
+  Wind:
+    params: [C]
+    steps: [{run: Winding, with: {active: $C, target: "R[:4]"}}]
+fsm:
+  - {run: Anchoring, with: {body: Z, sites: [start]}}
+  - {run: Wind, with: {C: "Q[5:]"}}
+  - {run: MoveTo, with: {body: "R[2:3:4]", sites: [start], to: {object: box}}}
+  - {run: Tightening, with: {pulls: [{body: R}], knot: [S]}}
+"""
+
+
+def test_unknown_bodies_strands_and_objects_in_maneuvers_are_level_errors():
+    """Names in maneuver parameters are checked at load, also through macros: nothing half-runs."""
+    with pytest.raises(LevelError) as err:
+        load_level_from_string(BAD_REFS)
+    text = str(err.value)
+    assert "state '0:Anchoring': unknown rope or cloth 'Z'; ropes: R" in text
+    assert "state '1:Wind/0:Winding': unknown rope 'Q[5:]'" in text
+    assert "bad strand 'R[2:3:4]'" in text
+    assert "unknown object 'box'; objects: (none)" in text
+    assert "unknown rope 'S'" in text

@@ -186,3 +186,59 @@ def check_criteria(
 def used_maneuvers(flat_states: Mapping[str, Any]) -> set[str]:
     """Maneuver names run by an expanded FSM's states."""
     return {s.maneuver for s in flat_states.values()}
+
+
+_ROPE_KEYS = ("active", "target")  # maneuver parameters that name a rope or a strand of one
+_BODY_KEYS = ("body",)  # ... a rope, a strand or a cloth
+
+
+def check_references(data: Any, states: Mapping[str, Any]) -> list[Finding]:
+    """Bodies, strands and objects named in maneuver parameters must exist in the scene.
+
+    Walks each expanded state's parameters (after macro substitution): ``active``
+    and ``target`` name ropes or strands ``R[i0:i1]``; ``body`` a rope, strand or
+    cloth; ``knot`` a list of those; ``object`` (inside a target) an object.
+    """
+    from sandbox.model.strands import parse_strand
+
+    names = scene_names(data)
+    ropes, cloths, objects = set(names["rope"]), set(names["cloth"]), set(names["object"])
+    out: list[Finding] = []
+
+    def allowed(kinds: tuple[str, ...]) -> str:
+        return "; ".join(f"{k}s: {', '.join(names[k]) or '(none)'}" for k in kinds)
+
+    def body(value: Any, path: tuple, state: str, kinds: tuple[str, ...]) -> None:
+        if not isinstance(value, str):
+            return
+        try:
+            base = parse_strand(value)[0]
+        except ValueError as exc:
+            out.append(Finding(path, f"state {state!r}: {exc}"))
+            return
+        ok = base in ropes or ("cloth" in kinds and base == value and base in cloths)
+        if not ok:
+            out.append(Finding(path, f"state {state!r}: unknown {' or '.join(kinds)} {value!r}; {allowed(kinds)}"))
+
+    def walk(value: Any, path: tuple, state: str) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                p = path + (k,)
+                if k in _ROPE_KEYS:
+                    body(v, p, state, ("rope",))
+                elif k in _BODY_KEYS:
+                    body(v, p, state, ("rope", "cloth"))
+                elif k == "knot" and isinstance(v, list):
+                    for i, item in enumerate(v):
+                        body(item, p + (i,), state, ("rope",))
+                elif k == "object" and isinstance(v, str) and v not in objects:
+                    out.append(Finding(p, f"state {state!r}: unknown object {v!r}; {allowed(('object',))}"))
+                else:
+                    walk(v, p, state)
+        elif isinstance(value, list):
+            for i, item in enumerate(value):
+                walk(item, path + (i,), state)
+
+    for name, st in states.items():
+        walk(st.params, tuple(st.path) + ("with",), name)
+    return out

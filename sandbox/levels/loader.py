@@ -178,6 +178,7 @@ def _validate(
     findings += found
     if fsm is not None:  # without states, a criterion's targets cannot be told apart
         findings += checks.check_criteria(data, flat.names(), checks.used_maneuvers(flat.states))
+        findings += checks.check_references(data, flat.states)
     if any(f.severity is Severity.ERROR for f in findings):
         level = None
     return level, findings
