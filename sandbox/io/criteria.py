@@ -11,6 +11,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from sandbox.model.strands import base_name
+
 
 def _bodies(world, of) -> list[str]:
     """Body names (ropes, cloths) or strands (``R[i0:i1]``) that ``of`` names; all bodies for None."""
@@ -22,7 +24,7 @@ def _bodies(world, of) -> list[str]:
 
 def _whole(names: list[str]) -> list[str]:
     """The bodies behind strands: per-body run maxima are kept per whole rope."""
-    return list(dict.fromkeys(n.split("[", 1)[0].strip() for n in names))
+    return list(dict.fromkeys(base_name(n) for n in names))
 
 
 def _max_strain(world, of) -> float:

@@ -17,6 +17,7 @@ import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
+from sandbox.model.strands import base_name
 
 Site = Union[str, int]
 Vec3 = tuple[float, float, float]
@@ -204,7 +205,7 @@ class Crossing(Maneuver):
 
     def approach(self, x: np.ndarray):
         """Closest approach of C and T now: ``(distance, point on C, point on T)``."""
-        same = self.params.active.split("[", 1)[0].strip() == self.params.target.split("[", 1)[0].strip()
+        same = base_name(self.params.active) == base_name(self.params.target)
         exclude = (np.pi * 1.1 * (self.c.radius + self.t.radius) / self.c.rod_length + 2) if same else -1.0
         return closest_approach(x[self.c.start:self.c.end], x[self.t.start:self.t.end],
                                 np.arange(self.c.start, self.c.end), np.arange(self.t.start, self.t.end), exclude)
@@ -257,7 +258,7 @@ class Tightening(Maneuver):
         if p.release_others:
             pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls])
             for st in self.strands:
-                whole = w._rope(st.name.split("[", 1)[0].strip())
+                whole = w._rope(base_name(st.name))
                 idx = np.arange(whole.start, whole.end)
                 held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
                 if len(held):
@@ -295,7 +296,7 @@ class Tightening(Maneuver):
             seg_rope = self.world.data.segment_rope
             names = [r.name for r in self.world.data.ropes]
             for s in self.strands:
-                base = s.name.split("[", 1)[0].strip()
+                base = base_name(s.name)
                 g = gap[seg_rope == names.index(base)]
                 if len(g):
                     overlap = max(overlap, float(-g.min()) / s.radius)

@@ -19,6 +19,7 @@ import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
+from sandbox.model.strands import base_name
 
 
 class WindingParams(Params):
@@ -120,7 +121,7 @@ class Winding(Maneuver):
         if x is not None:
             return int(np.argmin(np.linalg.norm(xc - x, axis=1)))
         d = np.linalg.norm(xc[:, None, :] - xt[None, :, :], axis=2)
-        if p.active.split("[", 1)[0].strip() == p.target.split("[", 1)[0].strip():
+        if base_name(p.active) == base_name(p.target):
             gi = np.arange(self.c.start, self.c.end)[:, None]
             gj = np.arange(self.t.start, self.t.end)[None, :]
             near = np.pi * self.R / min(self.c.rod_length, self.t.rod_length) + 2

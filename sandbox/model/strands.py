@@ -28,6 +28,11 @@ def parse_strand(ref: str) -> tuple[str, int | None, int | None]:
     return name, (int(lo) if lo else None), (int(hi) if hi else None)
 
 
+def base_name(ref: str) -> str:
+    """The rope a strand belongs to: ``"R[3:9]"`` -> ``"R"`` (a plain name is returned as is)."""
+    return ref.split("[", 1)[0].strip()
+
+
 def strand_range(rope, ref: str):
     """The part of ``rope`` (a ``RopeRange``) that ``ref`` names, as a ``RopeRange`` named ``ref``.
 
