@@ -96,8 +96,8 @@ def test_closest_approach_skips_the_same_bend():
     t = np.linspace(0, 1, 11)
     a = np.stack([t, 0 * t, 0 * t], 1)
     b = np.stack([0.5 + 0 * t, t - 0.5, 0.05 + 0 * t], 1)
-    d, pa, pb = closest_approach(a, b, np.arange(11), np.arange(100, 111), exclude=-1)
-    assert d == pytest.approx(0.05) and pa[0] == pytest.approx(0.5) and pb[1] == pytest.approx(0.0)
+    d, i, j = closest_approach(a, b, np.arange(11), np.arange(100, 111), exclude=-1)
+    assert d == pytest.approx(0.05) and a[i, 0] == pytest.approx(0.5) and b[j, 1] == pytest.approx(0.0)
     # The same indices on one rope, excluded within 200 particles: nothing is left but inf.
     d, _, _ = closest_approach(a, b, np.arange(11), np.arange(11), exclude=200)
     assert d == np.inf

@@ -73,7 +73,7 @@ def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0
 
 
 def closest_approach(xc: np.ndarray, xt: np.ndarray, gc: np.ndarray, gt: np.ndarray, exclude: float):
-    """Where two strands pass closest: ``(distance, point on C, point on T)``.
+    """Where two strands pass closest: ``(distance, index on C, index on T)``.
 
     ``gc``, ``gt`` are the particles' global indices; pairs closer than
     ``exclude`` along one rope (the same bend of a self-knot) are skipped.
@@ -81,7 +81,19 @@ def closest_approach(xc: np.ndarray, xt: np.ndarray, gc: np.ndarray, gt: np.ndar
     d = np.linalg.norm(xc[:, None, :] - xt[None, :, :], axis=2)
     d = np.where(np.abs(gc[:, None] - gt[None, :]) > exclude, d, np.inf)
     i, j = np.unravel_index(int(np.argmin(d)), d.shape)
-    return float(d[i, j]), xc[i], xt[j]
+    return float(d[i, j]), int(i), int(j)
+
+
+def strand_approach(x: np.ndarray, c, t):
+    """``closest_approach`` of strands ``c`` and ``t`` (``RopeRange``) in positions ``x``.
+
+    Two strands of one rope skip pairs within half a turn of their bounding
+    tube (radius 1.1 (r_C + r_T)) of each other along the rope.
+    """
+    same = base_name(c.name) == base_name(t.name)
+    exclude = (np.pi * 1.1 * (c.radius + t.radius) / min(c.rod_length, t.rod_length) + 2) if same else -1.0
+    return closest_approach(x[c.start:c.end], x[t.start:t.end],
+                            np.arange(c.start, c.end), np.arange(t.start, t.end), exclude)
 
 
 def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -205,10 +217,8 @@ class Crossing(Maneuver):
 
     def approach(self, x: np.ndarray):
         """Closest approach of C and T now: ``(distance, point on C, point on T)``."""
-        same = base_name(self.params.active) == base_name(self.params.target)
-        exclude = (np.pi * 1.1 * (self.c.radius + self.t.radius) / self.c.rod_length + 2) if same else -1.0
-        return closest_approach(x[self.c.start:self.c.end], x[self.t.start:self.t.end],
-                                np.arange(self.c.start, self.c.end), np.arange(self.t.start, self.t.end), exclude)
+        d, i, j = strand_approach(x, self.c, self.t)
+        return d, x[self.c.start + i], x[self.t.start + j]
 
     def metrics(self) -> dict[str, float]:
         return {"miss": self.approach(self.world.positions().astype(np.float64))[0]}

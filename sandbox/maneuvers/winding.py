@@ -19,7 +19,6 @@ import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
-from sandbox.model.strands import base_name
 
 
 class WindingParams(Params):
@@ -55,7 +54,7 @@ class Winding(Maneuver):
         xc = w.rope_positions(p.active)
         xt = w.rope_positions(p.target)
         if p.start == "nearest":
-            self.i0 = self._crossing_particle(xc, xt)
+            self.i0 = self._crossing_particle(xc)
         else:
             self.i0 = int(p.start) % len(xc)
         self.cross = xc[self.i0].astype(np.float64)
@@ -110,7 +109,7 @@ class Winding(Maneuver):
         xt[run] = line
         return idx
 
-    def _crossing_particle(self, xc: np.ndarray, xt: np.ndarray) -> int:
+    def _crossing_particle(self, xc: np.ndarray) -> int:
         """C's particle at the crossing: nearest the X a Crossing recorded, else nearest T.
 
         For two strands of one rope, particles within a tube's half turn of
@@ -120,13 +119,9 @@ class Winding(Maneuver):
         x = getattr(w, "crossings", {}).get((p.active, p.target))
         if x is not None:
             return int(np.argmin(np.linalg.norm(xc - x, axis=1)))
-        d = np.linalg.norm(xc[:, None, :] - xt[None, :, :], axis=2)
-        if base_name(p.active) == base_name(p.target):
-            gi = np.arange(self.c.start, self.c.end)[:, None]
-            gj = np.arange(self.t.start, self.t.end)[None, :]
-            near = np.pi * self.R / min(self.c.rod_length, self.t.rod_length) + 2
-            d = np.where(np.abs(gi - gj) > near, d, np.inf)
-        return int(np.argmin(d.min(axis=1)))
+        from sandbox.maneuvers.knotting import strand_approach
+
+        return strand_approach(w.positions().astype(np.float64), self.c, self.t)[1]
 
     def _targets(self, xt: np.ndarray) -> np.ndarray:
         from sandbox.geometry.tube import Tube, sample_targets, smooth_axis, trace_geodesic
