@@ -303,6 +303,22 @@ class World:
                 row["maneuver"] = man.metrics()
         return row
 
+    def surface_samples(self, name: str, count: int = 4000) -> np.ndarray:
+        """Area-uniform points (count, 3) on an object's surface at its current pose (m), fixed seed."""
+        import trimesh
+
+        k = self.object_index(name)
+        verts, faces = self.objects.world_mesh(k)
+        mesh = trimesh.Trimesh(np.asarray(verts, float), faces, process=False)
+        area = mesh.area_faces
+        rng = np.random.default_rng(0)
+        f = rng.choice(len(faces), size=count, p=area / area.sum())
+        a, b = rng.random((2, count))
+        flip = a + b > 1.0
+        a[flip], b[flip] = 1.0 - a[flip], 1.0 - b[flip]
+        tri = mesh.vertices[mesh.faces[f]]
+        return tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
+
     def body_scale(self, name: str) -> float:
         """Length scale of a body for relative penetration: rope radius or cloth thickness (m)."""
         if name in self.ropes or "[" in name:

@@ -121,6 +121,75 @@ def _knot(world, of) -> str:
     raise ValueError("knot needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]' (a knot between two)")
 
 
+def _wraps(world, of) -> list[tuple[tuple[str, str], dict]]:
+    names = _bodies(world, of)
+    wraps = [(key, rec) for key, rec in getattr(world, "wraps", {}).items() if key[0] in names]
+    if not wraps:
+        raise ValueError(f"no control line of {', '.join(names)} was wrapped")
+    return wraps
+
+
+def _overlap_distances(world, of) -> np.ndarray:
+    """Distances (m) of every wrapped control line's laid particles from their target lines."""
+    from sandbox.geometry.mesh_geodesic import polyline_distance
+
+    x = world.positions().astype(np.float64)
+    d = [polyline_distance(x[rec["particles"][rec["arc"] <= rec["c_end"] + 1e-9]], rec["line"])
+         for _, rec in _wraps(world, of)]
+    return np.concatenate(d) if d else np.zeros(0)
+
+
+def _overlap_error(world, of) -> float:
+    """Largest distance (m) of a wrapped control line's laid particles from their target line."""
+    d = _overlap_distances(world, of)
+    return float(d.max()) if len(d) else 0.0
+
+
+def _overlap_error_mean(world, of) -> float:
+    d = _overlap_distances(world, of)
+    return float(d.mean()) if len(d) else 0.0
+
+
+def _overlap_error_ratio(world, of) -> float:
+    return _overlap_error(world, of) / min(world.body_scale(key[0]) for key, _ in _wraps(world, of))
+
+
+def _wrap_turns(world, of) -> float:
+    """Largest |turns| of a wrapped control line's laid particles about the vertical through its object."""
+    from sandbox.geometry.mesh_geodesic import turns_about
+
+    x = world.positions().astype(np.float64)
+    best = 0.0
+    for _, rec in _wraps(world, of):
+        k = world.object_index(rec["object"])
+        verts, _ = world.objects.world_mesh(k)
+        centre = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
+        laid = rec["particles"][rec["arc"] <= rec["c_end"] + 1e-9]
+        if len(laid) > 1:
+            best = max(best, abs(turns_about(x[laid], axis=(0.0, 1.0, 0.0), origin=centre)))
+    return best
+
+
+def _coverage(world, of) -> float:
+    """Fraction of an object's surface with a cloth particle within half a thickness plus one spacing."""
+    from scipy.spatial import cKDTree
+
+    names = [of] if isinstance(of, str) else list(of or [])
+    objects = [n for n in names if n in world.object_specs]
+    cloths = [n for n in names if n in world.cloths]
+    if len(objects) != 1 or not cloths:
+        raise ValueError("coverage needs 'of: [cloth, object]' (one object, one or more cloths)")
+    pts = world.surface_samples(objects[0])
+    x = world.positions()
+    covered = np.zeros(len(pts), bool)
+    for name in cloths:
+        c = world.cloths[name]
+        reach = 0.5 * c.thickness + max(c.spacing)
+        d, _ = cKDTree(x[c.start : c.end]).query(pts, distance_upper_bound=reach)
+        covered |= np.isfinite(d)
+    return float(covered.mean())
+
+
 METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "max_strain": ("largest relative rod/edge stretch |l - r| / r over the run", _max_strain),
     "final_strain": ("largest relative rod/edge stretch at the end", _final_strain),
@@ -135,6 +204,14 @@ METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "linking_number": ("Gauss linking number of two ropes closed far away, of: [A, B]", _linking_number),
     "knot": ("knot tied in a rope closed far away (unknot, trefoil_left/right, figure_eight, granny_left/right, "
              "square, unknown), of: R; or between two ropes joined at their first particles, of: [A, B]", _knot),
+    "overlap_error": ("largest distance (m) of a wrapped control line's laid particles from its target line "
+                      "(offset by half the cloth thickness), of: cloth", _overlap_error),
+    "overlap_error_mean": ("mean of the same distances (m), of: cloth", _overlap_error_mean),
+    "overlap_error_ratio": ("overlap_error / cloth thickness, of: cloth", _overlap_error_ratio),
+    "wrap_turns": ("largest |turns| of a wrapped control line about the vertical axis through its object, "
+                   "of: cloth", _wrap_turns),
+    "coverage": ("fraction of an object's surface (area-uniform samples) with a cloth particle within half "
+                 "the thickness plus one grid spacing, of: [cloth, object]", _coverage),
 }
 """Metric name -> (description, function)."""
 

@@ -89,21 +89,53 @@ class AnchorParams(Params):
     body: str
     sites: list[Site]
     at: TargetLike | None = None
+    object: str | None = None
 
 
 @register
 class Anchoring(Maneuver):
-    """Hold named sites of a rope or cloth where they are (or at ``at``)."""
+    """Hold named sites of a rope or cloth where they are (or at ``at``).
+
+    With ``object`` (paper Table 2, "position of cloth and object"): the
+    object is placed on the body with the sites' centroid under the centre
+    of its base, resting on the body's upper side; the sites and every
+    particle of the body that the object then touches (within one collision
+    radius of its surface: what its weight pins) are held.
+    """
 
     name = "Anchoring"
     Params = AnchorParams
 
     def start(self) -> None:
-        idx = np.concatenate([self.world.site_particles(self.params.body, s) for s in self.params.sites])
-        x = self.world.positions()[idx]
-        if self.params.at is not None:
-            x = x - x.mean(axis=0) + resolve_target(self.world, self.params.at)
-        self.world.control.drive(idx, x)
+        w = self.world
+        p = self.params
+        idx = np.concatenate([w.site_particles(p.body, s) for s in p.sites])
+        x_all = w.positions()
+        x = x_all[idx]
+        if p.at is not None:
+            x = x - x.mean(axis=0) + resolve_target(w, p.at)
+        if p.object is not None:
+            idx, x = self._place(idx, x, x_all)
+        w.control.drive(idx, x)
+
+    def _place(self, idx, x, x_all):
+        w = self.world
+        p = self.params
+        k = w.object_index(p.object)
+        if w.object_specs[p.object].motion is not None:
+            raise ValueError(f"Anchoring: object {p.object!r} follows scripted motion and cannot be placed")
+        verts, _ = w.objects.world_mesh(k)
+        lo, hi = verts.min(axis=0), verts.max(axis=0)
+        body = w.site_particles(p.body, "all")
+        r = float(w.model.data.radius[body].max())
+        base = np.array([0.5 * (lo[0] + hi[0]), lo[1], 0.5 * (lo[2] + hi[2])])
+        site = x.mean(axis=0)
+        pos, rot = w.objects.pose(k)
+        w.objects.place(k, pos + np.array([site[0], site[1] + r + 1e-4, site[2]]) - base, rot)
+        d, _, kk = w.objects.query_numpy(x_all[body])
+        under = body[(kk == k) & (d <= 2.0 * r)]
+        keep = np.setdiff1d(under, idx)
+        return np.concatenate([idx, keep]), np.concatenate([x, x_all[keep]])
 
     def update(self) -> Status:
         self.progress = 1.0

@@ -14,7 +14,12 @@ Particles that touched the ground or an object in this substep may not move
 along their contact normal: their inverse mass becomes w (I - n n^T). The
 chain then slides over a surface instead of being pulled through it and
 pushed back out, which would otherwise lock a chain draped over a sharp edge
-in a stretched state. The system stays tridiagonal and scalar.
+in a stretched state. The system stays tridiagonal and scalar. Contact is
+one-sided: a particle whose chain neighbour is already off the surface
+(more than 30% of a rod above it along the normal) may follow it, so a
+lifted control line peels the cloth off the ground (``_peel``) instead of
+meeting a rod that no motion of its free end can shorten. Only cloth chains
+peel; ropes keep the two-sided restriction their knots were tuned with.
 
 Chains are grouped so that no two chains of a group share a particle (ropes
 and cloth rows in one group, cloth columns in another); the chains of a
@@ -92,6 +97,8 @@ class ChainProjection:
         self.lo.from_numpy(np.asarray(lo, np.int32))
         self.hi.from_numpy(np.asarray(hi, np.int32))
         self.nrm = ti.Vector.field(3, ti.f32, shape=n_links)
+        self.peeled = ti.field(ti.i32, shape=model.n) if self.has_contacts else None
+        self.cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.cp = ti.field(ti.f32, shape=n_links)
         self.dp = ti.field(ti.f32, shape=n_links)
 
@@ -100,7 +107,7 @@ class ChainProjection:
         """u^T W_i v with W_i = w_i (I - n n^T) for a particle in contact."""
         r = self.w[i] * u.dot(v)
         if ti.static(self.has_contacts):
-            if self.contact[i] > 0.0:
+            if self.contact[i] > 0.0 and self.peeled[i] == 0:
                 n = self.normal[i]
                 r = self.w[i] * (u.dot(v) - u.dot(n) * v.dot(n))
         return r
@@ -110,7 +117,7 @@ class ChainProjection:
         """W_i u."""
         r = self.w[i] * u
         if ti.static(self.has_contacts):
-            if self.contact[i] > 0.0:
+            if self.contact[i] > 0.0 and self.peeled[i] == 0:
                 n = self.normal[i]
                 r = self.w[i] * (u - u.dot(n) * n)
         return r
@@ -165,8 +172,26 @@ class ChainProjection:
             x[b] = x[b] + lam * self._wapply(b, self.nrm[j])
 
     @ti.func
+    def _peel(self):
+        """Free the contacts whose chain neighbour has left the surface (see the module docstring)."""
+        x = ti.static(self.st.x)
+        for i in self.peeled:
+            self.peeled[i] = 0
+        for j in self.link_a:
+            a = self.link_a[j]
+            b = self.link_b[j]
+            if a >= ti.static(self.cloth_start):
+                lift = 0.3 * self.rest[j]
+                if self.contact[a] > 0.0 and (x[b] - x[a]).dot(self.normal[a]) > lift:
+                    self.peeled[a] = 1
+                if self.contact[b] > 0.0 and (x[a] - x[b]).dot(self.normal[b]) > lift:
+                    self.peeled[b] = 1
+
+    @ti.func
     def solve_f(self):
         """One Newton step of every chain, group after group."""
+        if ti.static(self.has_contacts and self.cloth_start < self.model.n):
+            self._peel()
         for g in ti.static(range(len(self.group_ranges))):
             for c in range(self.group_ranges[g][0], self.group_ranges[g][1]):
                 self._chain(c)
