@@ -253,11 +253,13 @@ class _Line:
         out[on] = _at(self.O, self.sO, s[on])
         base = _at(self.O, self.sO, self.c)
         free = s[~on] - self.c
-        if self.aim is None:
-            out[~on] = base + free[:, None] * self.u
-        else:
-            point, normal = self.aim
-            leg = max(float((point - base) @ self.u), 0.0)
+        point = None if self.aim is None else self.aim[0]
+        to_aim = None if point is None else point - base
+        if point is None or to_aim @ self.u < 0.95 * np.linalg.norm(to_aim):
+            out[~on] = base + free[:, None] * self.u  # not aimed (yet): straight on
+        else:  # aimed above the end: up to the aim point, then along the normal there
+            normal = self.aim[1]
+            leg = float(to_aim @ self.u)
             first = np.minimum(free, leg)
             out[~on] = base + first[:, None] * self.u + (free - first)[:, None] * normal
         return out

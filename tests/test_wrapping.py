@@ -1,0 +1,196 @@
+"""Cloth Anchoring on objects, Wrapping (paper §5.1), its geometry and its criteria."""
+
+import json
+import pathlib
+import tempfile
+
+import numpy as np
+import pytest
+import trimesh
+
+from sandbox.geometry.mesh_geodesic import SurfaceGeodesics, polyline_length
+from sandbox.levels import LevelError, load_level_from_string
+from sandbox.maneuvers.wrapping import offset_line
+
+import sandbox.maneuvers  # noqa: F401
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _world(text: str):
+    from sandbox.world import World
+
+    level = load_level_from_string(text, base_dir=ROOT / "levels")
+    w = World(level, base_dir=ROOT / "levels")
+    w.attach_fsm()
+    return w
+
+
+# -- geometry ----------------------------------------------------------------------------------
+
+
+def test_offset_line_rounds_a_box_edge_by_a_quarter_circle():
+    """Up a face and over the top edge: offset length = surface length + (pi/2) r (closed form)."""
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    geo = SurfaceGeodesics(box)
+    G = np.array([[0.2, -0.1, 0.0], [0.2, 0.2, 0.0], [0.0, 0.2, 0.0]])
+    r = 0.01
+    O = offset_line(geo, G, r)
+    assert polyline_length(O) == pytest.approx(polyline_length(G) + 0.5 * np.pi * r, rel=2e-3)
+    d = np.linalg.norm(O - geo.project(O)[0], axis=1)  # invariant: every point at distance r
+    np.testing.assert_allclose(d, r, rtol=1e-6, atol=1e-9)
+
+
+def test_silhouette_distance_of_a_turned_box():
+    from sandbox.maneuvers.wrapping import silhouette_distance
+
+    w = _world(SMALL.replace("frames: 240", "frames: 1"))
+    # The box (0.2 wide, turned 45 degrees) has a face 0.1 m from its axis along x = z.
+    u = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+    pts = np.array([0.05 * u, 0.1 * u, 0.15 * u])
+    pts[:, 1] = 0.01
+    np.testing.assert_allclose(silhouette_distance(w, "box", pts), [-0.05, 0.0, 0.05], atol=1e-6)
+
+
+# -- Anchoring and Wrapping on a small scene -------------------------------------------------------
+
+SMALL = """
+version: 1
+name: wrap_small
+scene:
+  ground: {height: 0.0, friction: 0.6}
+  objects:
+    - {name: box, shape: box, params: {size: [0.2, 0.15, 0.2]}, position: [0, 0.2, 0], rotation: [0, 45, 0]}
+  cloths:
+    - {name: cloth, resolution: [41, 41], size: [0.6, 0.6], center: [0, 0.012, 0], mass: 0.1,
+       bend_compliance: 0.5, damping: 0.05, self_collision: false}
+sim: {fps: 60, substeps: 10, iterations: 1, frames: 240}
+fsm:
+  - {run: Anchoring, with: {body: cloth, sites: [center], object: box}}
+  - {run: Wrapping, with: {body: cloth, object: box, corners: [A, C], to: {object: box, site: top},
+                           beyond: up, speed: 0.5}, timeout: 200}
+  - {run: Wait, with: {ticks: 10}}
+success:
+  - {metric: fsm_state, equals: success}
+  - {metric: overlap_error_ratio, of: cloth, max: 0.5}
+  - {metric: max_penetration_ratio, of: cloth, max: 0.1}
+  - {metric: coverage, of: [cloth, box], min: 0.3}
+"""
+
+
+def test_anchoring_puts_the_object_on_the_cloth_and_holds_what_it_presses():
+    w = _world(SMALL)
+    w.step()
+    w.step()
+    c = w.cloths["cloth"]
+    verts, _ = w.objects.world_mesh(w.object_index("box"))
+    centre = w.positions()[c.site("center")]
+    r = 0.5 * c.thickness
+    assert verts[:, 1].min() == pytest.approx(centre[1] + r, abs=2e-4)  # resting on the cloth's top side
+    np.testing.assert_allclose(0.5 * (verts.min(axis=0) + verts.max(axis=0))[[0, 2]], centre[[0, 2]], atol=1e-5)
+    held = w.control.driven_indices
+    held = held[~np.isin(held, np.concatenate([c.control_line(1), c.control_line(3)]))]  # Wrapping drives those
+    x = w.positions()[held]
+    d, _, _ = w.objects.query_numpy(x)
+    assert len(held) > 50 and d.max() <= 2 * r + 1e-6
+
+
+def test_wrapping_lays_two_corners_over_the_box_and_keeps_the_held_cloth_put():
+    w = _world(SMALL)
+    held0 = None
+    for _ in range(240):
+        w.step()
+        if held0 is None and w.fsm.state.endswith("Wrapping"):
+            under = w.control.driven_indices
+            held0 = (under, w.positions()[under].copy())
+        if w.fsm.finished:
+            break
+    assert w.fsm.state == "success", w.fsm.events[-3:]
+    from sandbox.io.criteria import evaluate
+
+    results = evaluate(w.level.success, w)
+    assert all(r["ok"] for r in results), results
+    # The corners end standing side by side above the top centre.
+    top = w.objects.world_mesh(0)[0][:, 1].max()
+    for corner in "AC":
+        assert w.positions()[w.cloths["cloth"].site(corner)][1] > top + 0.02
+    # Particles under the box (held by Anchoring, not on a control line) did not move.
+    lines = np.concatenate([w.wraps[("cloth", k)]["particles"] for k in "AC"])
+    keep = ~np.isin(held0[0], lines)
+    np.testing.assert_allclose(w.positions()[held0[0][keep]], held0[1][keep], atol=1e-6)
+
+
+def test_wrapping_fails_when_the_line_does_not_touch_the_object():
+    text = SMALL.replace("  - {run: Anchoring, with: {body: cloth, sites: [center], object: box}}\n", "")
+    w = _world(text)
+    for _ in range(3):
+        w.step()
+    assert w.fsm.state == "failure"
+    assert "does not touch" in w.fsm.events[-2]["message"] or "does not touch" in w.fsm.events[-1]["message"]
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ("to: {object: box, site: top},\n                           beyond: up,", "", "give 'to'"),
+    ("to: {object: box, site: top},", "angle: 30,", "beyond: up needs 'to'"),
+    ("corners: [A, C]", "corners: [A, A]", "corners repeat"),
+    ("corners: [A, C]", "corners: [A, E]", "corners"),
+])
+def test_bad_wrapping_parameters_are_load_errors(old, new, message):
+    assert old in SMALL
+    with pytest.raises(LevelError, match=message):
+        load_level_from_string(SMALL.replace(old, new), base_dir=ROOT / "levels")
+
+
+def test_unknown_object_in_wrapping_is_a_load_error():
+    with pytest.raises(LevelError, match="unknown object 'crate'"):
+        load_level_from_string(SMALL.replace("object: box, corners", "object: crate, corners"),
+                               base_dir=ROOT / "levels")
+
+
+# -- criteria ---------------------------------------------------------------------------------------
+
+
+def test_coverage_of_a_box_standing_on_a_cloth():
+    """Only the bottom face and a band of the sides as tall as the reach touch the cloth (closed form)."""
+    from sandbox.io.criteria import METRICS
+
+    w = _world(SMALL)
+    w.step()
+    w.step()
+    c = w.cloths["cloth"]
+    side, height = 0.2, 0.15
+    band = max(c.spacing)  # reach above the cloth surface: half the thickness + one spacing - r
+    area = 2 * side * side + 4 * side * height
+    expected = (side * side + 4 * side * band) / area
+    assert METRICS["coverage"][1](w, ["cloth", "box"]) == pytest.approx(expected, abs=0.03)
+    with pytest.raises(ValueError, match="coverage needs"):
+        METRICS["coverage"][1](w, "cloth")
+
+
+def test_overlap_criteria_need_a_wrap():
+    from sandbox.io.criteria import METRICS
+
+    w = _world(SMALL)
+    with pytest.raises(ValueError, match="no control line"):
+        METRICS["overlap_error"][1](w, "cloth")
+
+
+# -- shipped levels -----------------------------------------------------------------------------------
+
+
+def _run(level: str) -> dict:
+    from sandbox.runner import RunOptions, run_level
+
+    out = pathlib.Path(tempfile.mkdtemp())
+    code, _ = run_level(ROOT / "levels" / level, RunOptions(out=out, progress=False))
+    summary = json.loads((out / "summary.json").read_text())
+    summary["exit_code"] = code
+    return summary
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("level", ["wrap_box_corner.yaml", "wrap_box_two.yaml", "wrap_bottle.yaml",
+                                   "wrap_statue.yaml"])
+def test_wrap_levels_reach_their_criteria_headless(level):
+    s = _run(level)
+    assert s["success"] and s["exit_code"] == 0, s["criteria"]
