@@ -456,6 +456,23 @@ class ObjectSet:
         return best_d, best_n, best_k
 
     @ti.func
+    def query_within(self, p, cutoff):
+        """``query`` for contacts: objects whose bounding sphere is farther than
+        ``cutoff`` (m) from p are skipped without evaluating their distance, and
+        (FAR, up, -1) comes back when none is that close. Most particles of a
+        large cloth are far from every object: they cost one sphere test each.
+        """
+        best_d, best_n, best_k = FAR, ti.math.vec3(0.0, 1.0, 0.0), -1
+        for k in range(self.n):
+            R = self.rot[k]
+            q = R.transpose() @ (p - self.pos[k])
+            if (q - self.center[k]).norm() - self.bound_radius[k] < ti.min(best_d, cutoff):
+                d, n = self._local_sdf(k, q)
+                if d < best_d:
+                    best_d, best_n, best_k = d, R @ n, k
+        return best_d, best_n, best_k
+
+    @ti.func
     def velocity_at(self, k, p):
         """Velocity (m/s) of object k's material point now at world point p (m).
 

@@ -99,8 +99,9 @@ class Anchoring(Maneuver):
     With ``object`` (paper Table 2, "position of cloth and object"): the
     object is placed on the body with the sites' centroid under the centre
     of its base, resting on the body's upper side; the sites and every
-    particle of the body that the object then touches (within one collision
-    radius of its surface: what its weight pins) are held.
+    particle of the body that the object then presses (within one collision
+    radius of its surface and inside its shadow: what its weight pins) are
+    held.
     """
 
     name = "Anchoring"
@@ -132,8 +133,12 @@ class Anchoring(Maneuver):
         site = x.mean(axis=0)
         pos, rot = w.objects.pose(k)
         w.objects.place(k, pos + np.array([site[0], site[1] + r + 1e-4, site[2]]) - base, rot)
+        from sandbox.maneuvers.wrapping import silhouette_distance
+
         d, _, kk = w.objects.query_numpy(x_all[body])
-        under = body[(kk == k) & (d <= 2.0 * r)]
+        # What the object presses: touching it and inside its shadow (not the
+        # ring of cloth around its base, which is free to be lifted).
+        under = body[(kk == k) & (d <= 2.0 * r) & (silhouette_distance(w, p.object, x_all[body]) <= 0.0)]
         keep = np.setdiff1d(under, idx)
         return np.concatenate([idx, keep]), np.concatenate([x, x_all[keep]])
 

@@ -186,7 +186,7 @@ class XPBDSolver:
                         self.c_dv[i] = ti.max(self.c_dv[i], 0.5 * (mu_p + gmu) * pen / dt)
                         self.c_vel[i] = ti.math.vec3(0.0)
                 if ti.static(self.has_objects):
-                    d, n, k = self.objects.query(x)
+                    d, n, k = self.objects.query_within(x, r)
                     pen = r - d
                     if pen > 0.0:
                         x += pen * n
@@ -275,7 +275,7 @@ class XPBDSolver:
                 if ti.static(self.has_ground):
                     dep = ti.max(dep, gh - x[1])
                 if ti.static(self.has_objects):
-                    d, n, k = self.objects.query(x)
+                    d, n, k = self.objects.query_within(x, 0.0)
                     dep = ti.max(dep, -d)
                 self.depth[i] = dep
             else:
