@@ -17,6 +17,17 @@ from sandbox.model.builder import ClothRange, ModelBuilder, RopeRange
 from sandbox.model.pose import euler_matrix, keyframe_pose
 
 
+def _rod_frame(direction: np.ndarray, e2_prev: np.ndarray | None):
+    """Orthonormal frame (e1 along the rod, e2, e3); e2 is the previous e2 made normal (no twist)."""
+    e1 = direction / max(np.linalg.norm(direction), 1e-12)
+    ref = e2_prev if e2_prev is not None else (np.array([0.0, 1.0, 0.0]) if abs(e1[1]) < 0.9 else np.array([1.0, 0.0, 0.0]))
+    e2 = ref - (ref @ e1) * e1
+    if np.linalg.norm(e2) < 1e-9:
+        e2 = np.cross(e1, [0.0, 0.0, 1.0])
+    e2 /= np.linalg.norm(e2)
+    return e1, e2, np.cross(e1, e2)
+
+
 class SimulationUnstable(RuntimeError):
     """The step kept producing NaN or exploding velocities after every retry."""
 
@@ -66,6 +77,12 @@ class World:
             objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
         )
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
+        # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).
+        self.rope_motions = []
+        for spec, rng in zip(scene.ropes, self.data.ropes):
+            if spec.motion is not None:
+                pins = self.data.pins[(self.data.pins >= rng.start) & (self.data.pins < rng.end)]
+                self.rope_motions.append((spec.motion, pins, self.data.x0[pins].copy()))
         self.reference = None
         if sim.solver == "projection":
             from sandbox.solvers.reference import ReferenceRopeSolver
@@ -208,6 +225,12 @@ class World:
         after ``sim.max_retries`` failed retries (the state is left at the
         start of the frame, which is valid).
         """
+        self._follow_attachments()
+        for motion, pins, rest in self.rope_motions:
+            held = self.control.is_driven(pins)
+            if held.any():
+                pos, rot = keyframe_pose(motion, self.time + self.dt)
+                self.control.drive(pins[held], rest[held] @ rot.T + pos)
         snap = self.state.save()
         obj_snap = [self.objects.pose(k) for k in self.moving] if self.moving else []
         substeps = self.substeps
@@ -318,6 +341,38 @@ class World:
         a[flip], b[flip] = 1.0 - a[flip], 1.0 - b[flip]
         tri = mesh.vertices[mesh.faces[f]]
         return tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
+
+    def attach(self, particle: int, rope: str) -> None:
+        """Keep a held particle's target fixed relative to the nearest rod of a rope, as that rope moves.
+
+        The offset is stored in a frame of the rod (its direction and a normal
+        carried along without twist, rotation-minimising from frame to frame);
+        each frame the particle is driven to the same offset. The attachment
+        ends when a maneuver releases the particle.
+        """
+        x = self.positions().astype(np.float64)
+        xr = self.rope_positions(rope).astype(np.float64)
+        p = x[particle]
+        seg = np.diff(xr, axis=0)
+        t = np.clip(np.einsum("ij,ij->i", p - xr[:-1], seg) / np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-18), 0, 1)
+        j = int(np.argmin(np.linalg.norm(xr[:-1] + t[:, None] * seg - p, axis=1)))
+        e1, e2, e3 = _rod_frame(seg[j], None)
+        local = np.array([(p - xr[j]) @ e for e in (e1, e2, e3)])
+        self.attachments = [a for a in getattr(self, "attachments", []) if a["particle"] != particle]
+        self.attachments.append({"particle": int(particle), "rope": rope, "rod": j, "local": local, "e2": e2})
+
+    def _follow_attachments(self) -> None:
+        kept = []
+        for a in getattr(self, "attachments", []):
+            if not self.control.is_driven([a["particle"]])[0]:
+                continue  # released: the attachment ends
+            xr = self.rope_positions(a["rope"]).astype(np.float64)
+            j = a["rod"]
+            e1, e2, e3 = _rod_frame(xr[j + 1] - xr[j], a["e2"])
+            a["e2"] = e2
+            self.control.drive([a["particle"]], (xr[j] + a["local"] @ np.stack([e1, e2, e3]))[None])
+            kept.append(a)
+        self.attachments = kept
 
     def body_scale(self, name: str) -> float:
         """Length scale of a body for relative penetration: rope radius or cloth thickness (m)."""

@@ -260,3 +260,76 @@ def test_unknown_bodies_strands_and_objects_in_maneuvers_are_level_errors():
     assert "bad strand 'R[2:3:4]'" in text
     assert "unknown object 'box'; objects: (none)" in text
     assert "unknown rope 'S'" in text
+
+
+# -- moving targets ------------------------------------------------------------------------------
+
+MOVING = """
+version: 1
+name: moving_pins
+scene:
+  ropes:
+    - name: T
+      points: [[-0.3, 0.5, 0], [0.3, 0.5, 0]]
+      rod_length: 0.02
+      radius: 0.01
+      pins: [start, end]
+      motion:
+        keyframes:
+          - {time: 0.0, position: [0, 0, 0]}
+          - {time: 1.0, position: [0, 0.1, 0.2], rotation: [0, 90, 0]}
+fsm:
+  - {run: Wait, with: {seconds: 2}}
+"""
+
+
+def test_rope_pins_follow_their_motion():
+    """Pins are carried by the keyframed pose: halfway at t = 0.5 s, at the last pose after t = 1 s."""
+    from sandbox.model.pose import euler_matrix
+
+    w = _world(MOVING)
+    x0 = w.rope_positions("T")[[0, -1]].astype(float)
+    for _ in range(30):
+        w.step()
+    half = x0 @ euler_matrix([0, 45, 0]).T + [0, 0.05, 0.1]
+    np.testing.assert_allclose(w.rope_positions("T")[[0, -1]], half, atol=1e-5)
+    for _ in range(40):
+        w.step()
+    end = x0 @ euler_matrix([0, 90, 0]).T + [0, 0.1, 0.2]
+    np.testing.assert_allclose(w.rope_positions("T")[[0, -1]], end, atol=1e-5)
+
+
+def test_rope_motion_needs_pins():
+    with pytest.raises(LevelError, match="give 'pins'"):
+        load_level_from_string(MOVING.replace("      pins: [start, end]\n", ""), base_dir=ROOT / "levels")
+
+
+def test_an_attached_particle_keeps_its_place_on_a_moving_rope():
+    """World.attach: the held particle keeps its offset in the frame of the nearest rod of T."""
+    text = MOVING.replace("""    - name: T""", """    - name: C
+      points: [[0.0, 0.52, 0], [0.0, 0.9, 0]]
+      rod_length: 0.02
+      radius: 0.005
+      pins: [start]
+    - name: T""")
+    w = _world(text)
+    c0 = w.site_particles("C", "start")[0]
+    w.attach(c0, "T")
+    a = w.attachments[0]
+    for _ in range(60):
+        xr = w.rope_positions("T").astype(float)  # targets follow T as it was when the frame began
+        w.step()
+    # T was carried and turned by 90 degrees: in the frame of the rod the offset is unchanged.
+    e1 = xr[a["rod"] + 1] - xr[a["rod"]]
+    e1 /= np.linalg.norm(e1)
+    frame = np.stack([e1, a["e2"], np.cross(e1, a["e2"])])
+    np.testing.assert_allclose(frame @ (w.positions()[c0] - xr[a["rod"]]), a["local"], atol=1e-4)
+    assert abs(e1[2]) > 0.99  # the rod really turned from x to z
+    w.control.release([c0])
+    w.step()
+    assert not w.attachments  # a released particle is no longer attached
+
+
+def test_rope_wind_moving_reaches_its_criteria_headless():
+    s = _run("rope_wind_moving.yaml")
+    assert s["success"] and s["exit_code"] == 0, s["criteria"]

@@ -287,6 +287,9 @@ class RopeSpec(_Model):
 
     Exactly one of ``segments`` (number of rods) and ``rod_length`` (m) is
     given; ``segment_count`` resolves either into a number of rods.
+    ``motion`` moves the pins like a hand that holds them: each keyframe's
+    pose (position, XYZ Euler degrees about the world origin) is applied to
+    the pins' initial positions; pins released by a maneuver stop following.
     """
 
     name: Name
@@ -300,6 +303,7 @@ class RopeSpec(_Model):
     damping: Unit = 0.01
     friction: Friction = 0.5
     pins: list[RopeSite] = []
+    motion: Motion | None = None
     color: Color = (0.2, 0.4, 0.9)
 
     @field_validator("rod_length")
@@ -311,6 +315,8 @@ class RopeSpec(_Model):
 
     @model_validator(mode="after")
     def _one_of(self) -> RopeSpec:
+        if self.motion is not None and not self.pins:
+            raise fail("motion_without_pins", "a rope's 'motion' moves its pins: give 'pins' as well")
         if self.segments is None and self.rod_length is None:
             raise fail("segments_or_rod_length", "give one of 'segments' or 'rod_length'")
         n = self.segment_count

@@ -35,6 +35,7 @@ class WindingParams(Params):
     refresh: Annotated[int, pydantic.Field(ge=1)] = 1  # frames between geodesic updates
     max_ticks_per_particle: Annotated[int, pydantic.Field(ge=1)] = 90
     straighten: Annotated[float, pydantic.Field(ge=0)] = 0.0  # m of T held straight around X_T (paper §4.2)
+    follow: bool = False  # once wound, the last particle's hold rides on T (a target that keeps moving)
 
 
 @register
@@ -194,6 +195,8 @@ class Winding(Maneuver):
         # run stays held too, so that the winding keeps its shape until then.
         if self.k < self.n:
             self.world.control.release([self._particle(self.k)])
+        elif self.params.follow:
+            self.world.attach(self._particle(self.n - 1), self.params.target)
 
     def metrics(self) -> dict[str, float]:
         return {"wound": self.k, "targets": self.n}
