@@ -60,6 +60,7 @@ class ChainProjection:
         rest: (L,) f32, m.
         lo, hi: (C,) i32, link range of each chain.
         nrm: (L,) vec3 f32, unit rod directions at the linearisation.
+        res: (L,) f32, m, -(length - rest) at the linearisation.
         cp, dp: (L,) f32, Thomas algorithm scratch.
     """
 
@@ -73,6 +74,7 @@ class ChainProjection:
         x0 = model.data.x0
         a, b, lo, hi = [], [], [], []
         self.group_ranges = []
+        self.link_ranges = []  # [first, last) link of each group (chains of a group are consecutive)
         n_links = 0
         for group in groups:
             g0 = len(lo)
@@ -83,6 +85,7 @@ class ChainProjection:
                 n_links += len(chain) - 1
                 hi.append(n_links)
             self.group_ranges.append((g0, len(lo)))
+            self.link_ranges.append((lo[g0] if len(lo) > g0 else n_links, n_links))
         a = np.concatenate(a).astype(np.int32)
         b = np.concatenate(b).astype(np.int32)
         self.n_links = n_links
@@ -99,6 +102,7 @@ class ChainProjection:
         self.nrm = ti.Vector.field(3, ti.f32, shape=n_links)
         self.peeled = ti.field(ti.i32, shape=model.n) if self.has_contacts else None
         self.cloth_start = min((c.start for c in model.data.cloths), default=model.n)
+        self.res = ti.field(ti.f32, shape=n_links)  # -(length - rest) at the linearisation
         self.cp = ti.field(ti.f32, shape=n_links)
         self.dp = ti.field(ti.f32, shape=n_links)
 
@@ -123,24 +127,32 @@ class ChainProjection:
         return r
 
     @ti.func
+    def _linearise(self, l0, l1):
+        """Rod directions and length residuals of links [l0, l1), all in parallel."""
+        x = ti.static(self.st.x)
+        for j in range(l0, l1):
+            dv = x[self.link_b[j]] - x[self.link_a[j]]
+            length = dv.norm()
+            n = ti.math.vec3(0.0)
+            if length > 1e-12:
+                n = dv / length
+            self.nrm[j] = n
+            self.res[j] = -(length - self.rest[j])
+
+    @ti.func
     def _chain(self, c):
-        """Solve one chain: build rows, forward-eliminate, back-substitute, scatter."""
+        """Solve one linearised chain: forward-eliminate, back-substitute, scatter."""
         x = ti.static(self.st.x)
         lo = self.lo[c]
         hi = self.hi[c]
         for j in range(lo, hi):
             a = self.link_a[j]
             b = self.link_b[j]
-            dv = x[b] - x[a]
-            length = dv.norm()
-            n = ti.math.vec3(0.0)
-            if length > 1e-12:
-                n = dv / length
-            self.nrm[j] = n
+            n = self.nrm[j]
             # A small relative regulariser keeps a taut chain between two pins
             # (all rods collinear: one redundant constraint) from a zero pivot.
             diag = self._wdot(a, n, n) + self._wdot(b, n, n) + 1e-6 * (self.w[a] + self.w[b])
-            rhs = -(length - self.rest[j])
+            rhs = self.res[j]
             sub = 0.0  # A[j, j-1] = -n_{j-1}^T W_a n_j
             if j > lo:
                 sub = -self._wdot(a, self.nrm[j - 1], n)
@@ -154,17 +166,14 @@ class ChainProjection:
                 rhs = rhs - sub * self.dp[j - 1]
             sup = 0.0  # A[j, j+1] = -n_j^T W_b n_{j+1}
             if j + 1 < hi and not inert:
-                dn = x[self.link_b[j + 1]] - x[b]
-                ln = dn.norm()
-                if ln > 1e-12:
-                    sup = -self._wdot(b, n, dn / ln)
+                sup = -self._wdot(b, n, self.nrm[j + 1])
             self.cp[j] = sup / diag
             self.dp[j] = rhs / diag
         for jj in range(lo, hi):
             j = hi - 1 - (jj - lo)
             if j + 1 < hi:
                 self.dp[j] = self.dp[j] - self.cp[j] * self.dp[j + 1]
-        for j in range(lo, hi):
+        for j in range(lo, hi):  # scatter in chain order (the order fixes the float sums)
             a = self.link_a[j]
             b = self.link_b[j]
             lam = self.dp[j]
@@ -193,5 +202,6 @@ class ChainProjection:
         if ti.static(self.has_contacts and self.cloth_start < self.model.n):
             self._peel()
         for g in ti.static(range(len(self.group_ranges))):
+            self._linearise(self.link_ranges[g][0], self.link_ranges[g][1])
             for c in range(self.group_ranges[g][0], self.group_ranges[g][1]):
                 self._chain(c)
