@@ -12,6 +12,7 @@ from sandbox.maneuvers.knotting import closest_approach, crossing_targets
 from sandbox.model.strands import parse_strand
 
 import sandbox.maneuvers  # noqa: F401
+from tests.levelkit import run_shipped as _run, world_from_text as _world
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -31,15 +32,6 @@ def test_parse_strand(ref, parsed):
 def test_parse_strand_rejects_bad_refs(ref):
     with pytest.raises(ValueError, match="bad strand"):
         parse_strand(ref)
-
-
-def _world(text: str):
-    from sandbox.world import World
-
-    level = load_level_from_string(text, base_dir=ROOT / "levels")
-    w = World(level, base_dir=ROOT / "levels")
-    w.attach_fsm()
-    return w
 
 
 ONE_ROPE = """
@@ -188,19 +180,6 @@ def test_tightening_stops_when_the_rope_is_taut():
 
 
 # -- headless levels -------------------------------------------------------------------------------
-
-
-def _run(level: str) -> dict:
-    from sandbox.runner import RunOptions, run_level
-
-    import tempfile
-    import json
-
-    out = pathlib.Path(tempfile.mkdtemp())
-    code, _ = run_level(ROOT / "levels" / level, RunOptions(out=out, progress=False))
-    summary = json.loads((out / "summary.json").read_text())
-    summary["exit_code"] = code
-    return summary
 
 
 def test_rope_wind_reaches_its_criteria_headless():

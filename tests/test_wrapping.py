@@ -1,8 +1,6 @@
 """Cloth Anchoring on objects, Wrapping (paper §5.1), its geometry and its criteria."""
 
-import json
 import pathlib
-import tempfile
 
 import numpy as np
 import pytest
@@ -13,17 +11,9 @@ from sandbox.levels import LevelError, load_level_from_string
 from sandbox.maneuvers.wrapping import offset_line
 
 import sandbox.maneuvers  # noqa: F401
+from tests.levelkit import run_shipped as _run, world_from_text as _world
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-
-
-def _world(text: str):
-    from sandbox.world import World
-
-    level = load_level_from_string(text, base_dir=ROOT / "levels")
-    w = World(level, base_dir=ROOT / "levels")
-    w.attach_fsm()
-    return w
 
 
 # -- geometry ----------------------------------------------------------------------------------
@@ -176,16 +166,6 @@ def test_overlap_criteria_need_a_wrap():
 
 
 # -- shipped levels -----------------------------------------------------------------------------------
-
-
-def _run(level: str) -> dict:
-    from sandbox.runner import RunOptions, run_level
-
-    out = pathlib.Path(tempfile.mkdtemp())
-    code, _ = run_level(ROOT / "levels" / level, RunOptions(out=out, progress=False))
-    summary = json.loads((out / "summary.json").read_text())
-    summary["exit_code"] = code
-    return summary
 
 
 @pytest.mark.slow
