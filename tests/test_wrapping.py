@@ -170,7 +170,7 @@ def test_overlap_criteria_need_a_wrap():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("level", ["wrap_box_corner.yaml", "wrap_box_two.yaml", "wrap_bottle.yaml",
-                                   "wrap_statue.yaml"])
+                                   "wrap_statue.yaml", "wrap_jeep_two.yaml"])
 def test_wrap_levels_reach_their_criteria_headless(level):
     s = _run(level)
     assert s["success"] and s["exit_code"] == 0, s.get("criteria") or s.get("message")

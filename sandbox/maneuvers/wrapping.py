@@ -288,6 +288,7 @@ class Wrapping(Maneuver):
         geo = surface(w, p.object, p.hull)
         self.geo = geo
         k_obj = w.object_index(p.object)
+        verts_lo = np.asarray(w.objects.world_mesh(k_obj)[0]).min(axis=0)
         x = w.positions().astype(np.float64)
         q = None
         if p.to is not None:
@@ -301,15 +302,18 @@ class Wrapping(Maneuver):
             rest_arc = _arc(rest)
             d, _, kk = w.objects.query_numpy(x[idx])
             touching = np.flatnonzero((kk == k_obj) & (d <= cloth.thickness))
+            # The line leaves the object where it leaves the object's shadow:
+            # rotating about a point under an overhang would sweep through it.
+            # Under an object that rests on the cloth counts as touching its
+            # hull (a car on its wheels).
+            shadow = np.flatnonzero((silhouette_distance(w, p.object, x[idx]) <= self.r)
+                                    & (np.abs(verts_lo[1] - x[idx, 1]) <= cloth.thickness))
+            touching = np.union1d(touching, shadow)
             if len(touching) == 0:
                 self.message = (f"control line {LINE_OF_CORNER[corner]} (corner {corner}) of {p.body!r} does not "
                                 f"touch {p.object!r}: place the object on the cloth first (Anchoring with object)")
                 self.lines = []
                 return
-            # The line leaves the object where it leaves the object's shadow:
-            # rotating about a point under an overhang would sweep through it.
-            shadow = np.flatnonzero(silhouette_distance(w, p.object, x[idx]) <= self.r)
-            touching = np.union1d(touching, shadow)
             i0 = int(touching.max())
             if i0 >= len(idx) - 1:
                 self.message = f"corner {corner} of {p.body!r} already lies on {p.object!r}: nothing to wrap"
