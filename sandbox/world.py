@@ -326,6 +326,20 @@ class World:
                 row["maneuver"] = man.metrics()
         return row
 
+    def shadow_distance(self, name: str, points) -> np.ndarray:
+        """Signed distance (m, > 0 outside) in the ground plane from points to an object's convex shadow.
+
+        The shadow is the convex hull of the object's vertices at its current
+        pose projected along y; the distance is the largest edge-line distance
+        (exact outside a vertex region, a lower bound there).
+        """
+        from scipy.spatial import ConvexHull
+
+        verts, _ = self.objects.world_mesh(self.object_index(name))
+        eq = ConvexHull(np.asarray(verts, float)[:, [0, 2]]).equations  # n . p + c <= 0 inside, |n| = 1
+        P = np.asarray(points, float)[:, [0, 2]]
+        return (P @ eq[:, :2].T + eq[:, 2]).max(axis=1)
+
     def surface_samples(self, name: str, count: int = 4000) -> np.ndarray:
         """Area-uniform points (count, 3) on an object's surface at its current pose (m), fixed seed."""
         import trimesh

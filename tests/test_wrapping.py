@@ -31,15 +31,13 @@ def test_offset_line_rounds_a_box_edge_by_a_quarter_circle():
     np.testing.assert_allclose(d, r, rtol=1e-6, atol=1e-9)
 
 
-def test_silhouette_distance_of_a_turned_box():
-    from sandbox.maneuvers.wrapping import silhouette_distance
-
+def test_shadow_distance_of_a_turned_box():
     w = _world(SMALL.replace("frames: 240", "frames: 1"))
     # The box (0.2 wide, turned 45 degrees) has a face 0.1 m from its axis along x = z.
     u = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
     pts = np.array([0.05 * u, 0.1 * u, 0.15 * u])
     pts[:, 1] = 0.01
-    np.testing.assert_allclose(silhouette_distance(w, "box", pts), [-0.05, 0.0, 0.05], atol=1e-6)
+    np.testing.assert_allclose(w.shadow_distance("box", pts), [-0.05, 0.0, 0.05], atol=1e-6)
 
 
 # -- Anchoring and Wrapping on a small scene -------------------------------------------------------
@@ -108,6 +106,26 @@ def test_wrapping_lays_two_corners_over_the_box_and_keeps_the_held_cloth_put():
     lines = np.concatenate([w.wraps[("cloth", k)]["particles"] for k in "AC"])
     keep = ~np.isin(held0[0], lines)
     np.testing.assert_allclose(w.positions()[held0[0][keep]], held0[1][keep], atol=1e-6)
+
+
+def test_hold_end_lets_the_laid_line_go_and_keeps_its_end():
+    """hold: end releases the laid particles (all but the last), waits ``settle``, then measures them."""
+    w = _world(SMALL.replace("beyond: up, speed: 0.5}", "beyond: up, speed: 0.5, hold: end, settle: 0.2}"))
+    released = None
+    for _ in range(240):
+        w.step()
+        man = w.fsm.maneuver
+        if released is None and getattr(man, "released_at", None) is not None:
+            released = {ln.corner: (ln.driven[ln.s < ln.c_end - 1e-9], ln.driven[ln.s >= ln.c_end - 1e-9])
+                        for ln in man.lines}
+        if w.fsm.finished or (released is not None and not w.fsm.state.endswith("Wrapping")):
+            break
+    assert released is not None, "the line was never released"
+    for laid, beyond in released.values():
+        assert not w.control.is_driven(laid[:-1]).any() if len(beyond) == 0 else not w.control.is_driven(laid).any()
+        assert w.control.is_driven(beyond).all()
+    event = next(e for e in w.fsm.events if e["state"].endswith("Wrapping") and e["type"] in ("done", "failed"))
+    assert event["type"] == "done" or "left its target line" in event["message"]
 
 
 def test_wrapping_fails_when_the_line_does_not_touch_the_object():

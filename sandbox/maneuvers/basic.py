@@ -133,12 +133,10 @@ class Anchoring(Maneuver):
         site = x.mean(axis=0)
         pos, rot = w.objects.pose(k)
         w.objects.place(k, pos + np.array([site[0], site[1] + r + 1e-4, site[2]]) - base, rot)
-        from sandbox.maneuvers.wrapping import silhouette_distance
-
         d, _, kk = w.objects.query_numpy(x_all[body])
         # What the object presses: touching it and inside its shadow (not the
         # ring of cloth around its base, which is free to be lifted).
-        under = body[(kk == k) & (d <= 2.0 * r) & (silhouette_distance(w, p.object, x_all[body]) <= 0.0)]
+        under = body[(kk == k) & (d <= 2.0 * r) & (w.shadow_distance(p.object, x_all[body]) <= 0.0)]
         keep = np.setdiff1d(under, idx)
         return np.concatenate([idx, keep]), np.concatenate([x, x_all[keep]])
 

@@ -103,22 +103,6 @@ def offset_line(geo, line: np.ndarray, r: float) -> np.ndarray:
     return X
 
 
-def silhouette_distance(world, name: str, points: np.ndarray) -> np.ndarray:
-    """Signed distance (m, > 0 outside) in the ground plane from points to an object's convex shadow.
-
-    The shadow is the convex hull of the object's vertices projected along y;
-    the distance is the largest edge-line distance (exact outside a vertex
-    region, a lower bound there).
-    """
-    from scipy.spatial import ConvexHull
-
-    verts, _ = world.objects.world_mesh(world.object_index(name))
-    xz = np.asarray(verts, float)[:, [0, 2]]
-    eq = ConvexHull(xz).equations  # (k, 3): n . p + c <= 0 inside, |n| = 1
-    P = np.asarray(points, float)[:, [0, 2]]
-    return (P @ eq[:, :2].T + eq[:, 2]).max(axis=1)
-
-
 def _arc(line: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
 
@@ -306,7 +290,7 @@ class Wrapping(Maneuver):
             # rotating about a point under an overhang would sweep through it.
             # Under an object that rests on the cloth counts as touching its
             # hull (a car on its wheels).
-            shadow = np.flatnonzero((silhouette_distance(w, p.object, x[idx]) <= self.r)
+            shadow = np.flatnonzero((w.shadow_distance(p.object, x[idx]) <= self.r)
                                     & (np.abs(verts_lo[1] - x[idx, 1]) <= cloth.thickness))
             touching = np.union1d(touching, shadow)
             if len(touching) == 0:
