@@ -8,7 +8,7 @@ import pytest
 from sandbox.geometry.knots import identify_knot
 from sandbox.geometry.tube import smooth_axis
 from sandbox.levels import LevelError, load_level_from_string
-from sandbox.maneuvers.knotting import closest_approach, crossing_targets
+from sandbox.maneuvers.knotting import closest_approach, crossing_targets, knot_exit
 from sandbox.model.strands import parse_strand
 
 import sandbox.maneuvers  # noqa: F401
@@ -82,6 +82,37 @@ def test_crossing_targets_cross_at_x(sign):
         assert np.linalg.norm(through - b) + np.linalg.norm(tip - through) == pytest.approx(0.54)
     assert (tc - x) @ xh > 0 and (tt - x) @ xh < 0  # C ends on T's side and vice versa
     assert np.sign((tc - x) @ zh) == sign and np.sign((tt - x) @ zh) == -sign
+
+
+def test_crossing_targets_across_sets_x_when_the_bottoms_coincide():
+    """Two strands leaving one knot: x runs along ``across``, not between the (equal) bottoms."""
+    b = np.array([0.0, 0.4, 0.0])
+    x, tc, tt, xh, _ = crossing_targets(b, b + 1e-4, 0.5, 0.5, height=0.1, sign=1, gap=0.02,
+                                        across=[0.0, 0.3, -2.0])
+    np.testing.assert_allclose(xh, [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(x, b + 0.5e-4 + [0, 0.1, 0], atol=1e-12)
+    assert (tc - x) @ xh > 0 and (tt - x) @ xh < 0
+
+
+class _Strand:
+    def __init__(self, name, start, end, radius=0.005, rod_length=0.01):
+        self.name, self.start, self.end, self.radius, self.rod_length = name, start, end, radius, rod_length
+
+
+def test_knot_exit_is_the_touching_particle_nearest_the_tip():
+    """Rope A runs along x and touches B (a vertical rope at x = 0.2) only at A's particle 20."""
+    t = np.arange(41) * 0.01
+    a = np.stack([t, 0 * t, 0 * t], 1)
+    b = np.stack([0.2 + 0 * t[:21], t[:21] - 0.1, 0.012 + 0 * t[:21]], 1)  # 12 mm apart, < 1.5 (r + r)
+    x = np.vstack([a, b])
+    A, B = _Strand("A", 0, 41), _Strand("B", 41, 62)
+    assert knot_exit(x, A, [B], toward=40) == 20
+    assert knot_exit(x, B, [A], toward=61) == 41 + 10  # B's particle at y = 0
+    far = x.copy()
+    far[41:, 2] = 0.05
+    assert knot_exit(far, A, [B], toward=40) is None
+    # One rope folded on itself: particles within its own bend do not count as touching.
+    assert knot_exit(a, _Strand("R[:20]", 0, 20), [_Strand("R[20:]", 20, 41)], toward=0) is None
 
 
 def test_closest_approach_skips_the_same_bend():
@@ -177,6 +208,26 @@ def test_tightening_stops_when_the_rope_is_taut():
     assert np.abs(seg / 0.02 - 1).max() < 0.01
     # Held back inside the rope's reach, not pulled the full 0.2 m.
     assert np.linalg.norm(x[-1] - x[0]) <= np.linalg.norm(x0[-1] - x0[0]) + 1e-3
+
+
+def test_crossing_above_a_contact_fails_when_the_strands_do_not_touch():
+    w = _world(TWO_ROPES.replace("sign: SIGN,", "sign: 1, active_base: contact, target_base: contact,"))
+    for _ in range(5):
+        w.step()
+    assert w.fsm.finished and not w.fsm.succeeded
+    assert any("does not touch" in e["message"] for e in w.fsm.events)
+
+
+def test_tightening_keeps_the_sites_it_is_told_to_keep():
+    w = _world(PULL.replace("fsm:\n", "fsm:\n  - {run: Anchoring, with: {body: R, sites: [10, 20]}}\n")
+               .replace("max_strain: 0.003}", "max_strain: 0.003, keep: [{body: R, sites: [10]}]}"))
+    for _ in range(120):
+        w.step()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    held = w.control.is_driven([10, 20])
+    assert held[0] and not held[1]
 
 
 # -- headless levels -------------------------------------------------------------------------------

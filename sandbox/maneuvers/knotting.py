@@ -33,7 +33,7 @@ def _other_end(site: Site) -> Site:
     return {"end": "start", "start": "end", -1: 0, 0: -1}.get(site, "start")
 
 
-def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0.9, elevation=45.0):
+def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0.9, elevation=45.0, across=None):
     """Where the tips go so that strands C and T cross at X (paper §4.1, Fig. 4).
 
     X sits above the midpoint of the two bottom points at ``height``. In the
@@ -52,12 +52,14 @@ def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0
         gap: separation of the strands at X, m.
         slack: bottom-to-tip distance over the strand length.
         elevation: angle of the strands above the horizontal beyond X, degrees.
+        across: ``(3,)`` horizontal direction of x, used instead of the bottoms'
+            when they nearly coincide (two strands that leave one knot).
 
     Returns:
         ``(X, tip_c, tip_t, xhat, zhat)``, each ``(3,)``.
     """
     base_c, base_t = np.asarray(base_c, float), np.asarray(base_t, float)
-    d = base_t - base_c
+    d = base_t - base_c if across is None else np.asarray(across, float).copy()
     d[1] = 0.0
     xhat = _unit(d, np.array([1.0, 0.0, 0.0]))
     zhat = np.cross(xhat, _UP)
@@ -96,6 +98,29 @@ def strand_approach(x: np.ndarray, c, t):
                             np.arange(c.start, c.end), np.arange(t.start, t.end), exclude)
 
 
+def knot_exit(x: np.ndarray, strand, others, toward: int) -> int | None:
+    """Global index of the particle of ``strand`` nearest particle ``toward`` that touches ``others``.
+
+    Touching is being within 1.5 (r + r_other) of one of their particles
+    (strands of the same rope skip the particle's own neighbourhood). This is
+    where the strand leaves a knot on its way to ``toward`` (its tip); None
+    when it touches none of them.
+    """
+    xs = x[strand.start:strand.end]
+    near = np.zeros(len(xs), bool)
+    for o in others:
+        d = np.linalg.norm(xs[:, None, :] - x[o.start:o.end][None, :, :], axis=2)
+        if base_name(o.name) == base_name(strand.name):
+            gi = np.arange(strand.start, strand.end)[:, None] - np.arange(o.start, o.end)[None, :]
+            exclude = np.pi * 1.1 * (strand.radius + o.radius) / min(strand.rod_length, o.rod_length) + 2
+            d = np.where(np.abs(gi) > exclude, d, np.inf)
+        near |= (d <= 1.5 * (strand.radius + o.radius)).any(axis=1)
+    touching = np.flatnonzero(near)
+    if not len(touching):
+        return None
+    return strand.start + int(touching[np.argmin(np.abs(touching - (toward - strand.start)))])
+
+
 def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
     """``point`` pulled back onto the ball around ``centre`` (a tip cannot go past its rope's reach)."""
     v = point - centre
@@ -108,8 +133,11 @@ class CrossingParams(Params):
     target: str  # strand T
     active_tip: Site = "end"  # C's particle that is moved (held by the hand)
     target_tip: Site | None = "end"  # T's particle that is moved; None keeps T where it is
-    active_base: Site | None = None  # C's constrained bottom point (default: the end opposite its tip)
-    target_base: Site | None = None
+    # C's constrained bottom point (default: the end opposite its tip);
+    # "contact": where the strand leaves the other one on its way to the tip
+    # (a knot tied before, e.g. the first half of a granny knot).
+    active_base: Site | Literal["contact"] | None = None
+    target_base: Site | Literal["contact"] | None = None
     height: Annotated[float, pydantic.Field(gt=0)] = 0.15  # m, X above the bottoms
     sign: Literal[1, -1] = 1  # +1: C passes in front of T (on +z)
     gap: Annotated[float, pydantic.Field(ge=0)] | None = None  # m; default 1.5 (r_C + r_T)
@@ -141,20 +169,28 @@ class Crossing(Maneuver):
         self.c = w._rope(p.active)
         self.t = w._rope(p.target)
         x = w.positions().astype(np.float64)
-        base_c = w.site_particles(p.active, p.active_base if p.active_base is not None else _other_end(p.active_tip))
         tip_t_site = p.target_tip if p.target_tip is not None else "end"
-        base_t = w.site_particles(p.target, p.target_base if p.target_base is not None else _other_end(tip_t_site))
+        tip_c_idx = w.site_particles(p.active, p.active_tip)
+        tip_t_idx = w.site_particles(p.target, tip_t_site)
+        base_c = self._base(x, self.c, self.t, p.active, p.active_base, p.active_tip, tip_c_idx)
+        base_t = self._base(x, self.t, self.c, p.target, p.target_base, tip_t_site, tip_t_idx)
+        self.moves = []  # (particle indices, current command, waypoints)
+        if base_c is None or base_t is None:
+            return  # ``update`` reports the failure with the message
         gap = p.gap if p.gap is not None else 1.5 * (self.c.radius + self.t.radius)
         self.gap = gap
         # Rope length between each bottom and its tip (not the whole strand).
-        tip_c_idx = w.site_particles(p.active, p.active_tip)
-        tip_t_idx = w.site_particles(p.target, tip_t_site)
         len_c = self.c.rod_length * abs(float(tip_c_idx.mean() - base_c.mean()))
         len_t = self.t.rod_length * abs(float(tip_t_idx.mean() - base_t.mean()))
+        bc, bt = x[base_c].mean(axis=0), x[base_t].mean(axis=0)
+        across = None
+        flat = lambda v: np.array([v[0], 0.0, v[2]])  # noqa: E731
+        if np.linalg.norm(flat(bt - bc)) < 4.0 * (self.c.radius + self.t.radius):
+            # Both strands leave one knot: C's tip goes over to T's tip's side.
+            across = flat(x[tip_t_idx].mean(axis=0) - x[tip_c_idx].mean(axis=0))
         self.x, tip_c, tip_t, self.xhat, zhat = crossing_targets(
-            x[base_c].mean(axis=0), x[base_t].mean(axis=0), len_c, len_t,
-            height=p.height, sign=p.sign, gap=gap, slack=p.slack, elevation=p.elevation)
-        self.moves = []  # (particle indices, current command, waypoints)
+            bc, bt, len_c, len_t, height=p.height, sign=p.sign, gap=gap, slack=p.slack,
+            elevation=p.elevation, across=across)
         plans = [(p.active, p.active_tip, tip_c, p.sign)]
         if p.target_tip is not None:
             plans.append((p.target, p.target_tip, tip_t, -p.sign))
@@ -177,9 +213,27 @@ class Crossing(Maneuver):
         w.crossings = getattr(w, "crossings", {})
         w.crossings[(p.active, p.target)] = self.x.copy()
 
+    def _base(self, x, strand, other, body, site, tip_site, tip_idx) -> np.ndarray | None:
+        """Global indices of a strand's bottom point: a site, its far end, or ``"contact"``.
+
+        ``"contact"`` is where the strand leaves the other one on its way to
+        the tip (``knot_exit``): the top of a knot tied before.
+        """
+        if site is None:
+            return self.world.site_particles(body, _other_end(tip_site))
+        if site != "contact":
+            return self.world.site_particles(body, site)
+        k = knot_exit(x, strand, [other], int(tip_idx.mean()))
+        if k is None:
+            self.message = f"strand {body!r} does not touch {other.name!r}: no contact to cross above"
+            return None
+        return np.array([k])
+
     def update(self) -> Status:
         p, w = self.params, self.world
         self.ticks += 1
+        if not self.moves:
+            return Status.FAILED
         arrived = True
         for k, (idx, pos, ways) in enumerate(self.moves):
             step = p.speed / w.fps
@@ -232,8 +286,16 @@ class Pull(Params):
     direction: Vec3 | Literal["away"] = "away"  # "away": from the knot's centre
 
 
+class Kept(Params):
+    """Sites that a Tightening keeps holding (standing ends held by a hand, an object or the cloth)."""
+
+    body: str
+    sites: Annotated[list[Site], pydantic.Field(min_length=1)]
+
+
 class TighteningParams(Params):
     pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]
+    keep: list[Kept] = []  # held sites that ``release_others`` does not let go
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
     distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
@@ -248,7 +310,8 @@ class Tightening(Maneuver):
     """Pull ends apart until the knot is tight (paper §4, step 4).
 
     Every other held particle of the knot's ropes is let go first (the last
-    wound particle a Winding keeps, hands that held the bottoms). Each pulled
+    wound particle a Winding keeps, hands that held the bottoms), except the
+    sites in ``keep`` (standing ends that an object or the cloth holds). Each pulled
     site then moves along its direction at ``speed``. The knot is tight
     when pulling more would stretch a rod by more than ``max_strain`` or press
     two rope capsules into each other by more than ``max_overlap`` of a
@@ -266,7 +329,8 @@ class Tightening(Maneuver):
         self.strands = [w._rope(n) for n in dict.fromkeys(names)]
         self.centre = self._knot_centre(x)
         if p.release_others:
-            pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls])
+            pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls]
+                                    + [w.site_particles(k.body, s) for k in p.keep for s in k.sites])
             for st in self.strands:
                 whole = w._rope(base_name(st.name))
                 idx = np.arange(whole.start, whole.end)
