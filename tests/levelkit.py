@@ -18,12 +18,12 @@ def world_from_text(text: str):
     return w
 
 
-def run_shipped(level: str) -> dict:
+def run_shipped(level: str, overrides: dict | None = None) -> dict:
     """Run ``levels/<level>`` headless into a fresh folder; its summary plus ``exit_code``."""
     from sandbox.runner import RunOptions, run_level
 
     out = pathlib.Path(tempfile.mkdtemp())
-    code, _ = run_level(ROOT / "levels" / level, RunOptions(out=out, progress=False))
+    code, _ = run_level(ROOT / "levels" / level, RunOptions(out=out, progress=False, overrides=overrides))
     summary = json.loads((out / "summary.json").read_text())
     summary["exit_code"] = code
     return summary

@@ -216,14 +216,20 @@ class Crossing(Maneuver):
     def _base(self, x, strand, other, body, site, tip_site, tip_idx) -> np.ndarray | None:
         """Global indices of a strand's bottom point: a site, its far end, or ``"contact"``.
 
-        ``"contact"`` is where the strand leaves the other one on its way to
-        the tip (``knot_exit``): the top of a knot tied before.
+        ``"contact"`` is where the strand's rope leaves the knot on its way to
+        the tip (``knot_exit`` over the whole ropes): the top of a knot tied
+        before.
         """
         if site is None:
             return self.world.site_particles(body, _other_end(tip_site))
         if site != "contact":
             return self.world.site_particles(body, site)
-        k = knot_exit(x, strand, [other], int(tip_idx.mean()))
+        # The knot may have slid past the strands' split while it was
+        # tightened (an overhand creeps along its rope): look along the whole
+        # rope, at every part of the ropes it could touch.
+        whole, other_whole = self.world._rope(base_name(strand.name)), self.world._rope(base_name(other.name))
+        parts = [whole] if other_whole.name == whole.name else [whole, other_whole]
+        k = knot_exit(x, whole, parts, int(tip_idx.mean()))
         if k is None:
             self.message = f"strand {body!r} does not touch {other.name!r}: no contact to cross above"
             return None

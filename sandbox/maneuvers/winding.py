@@ -36,6 +36,10 @@ class WindingParams(Params):
     max_ticks_per_particle: Annotated[int, pydantic.Field(ge=1)] = 90
     straighten: Annotated[float, pydantic.Field(ge=0)] = 0.0  # m of T held straight around X_T (paper §4.2)
     follow: bool = False  # once wound, the last particle's hold rides on T (a target that keeps moving)
+    # The hand keeps C's tip and carries the tail around T along G's tangent
+    # (fraction of the tail's length it is held out by); 0 lets the tail dangle.
+    carry_tail: Annotated[float, pydantic.Field(ge=0, lt=1)] = 0.0
+    tail_speed: Annotated[float, pydantic.Field(gt=0)] = 1.5  # m/s of the carried tip
 
 
 @register
@@ -77,9 +81,15 @@ class Winding(Maneuver):
         self.n_max = n_left + 1  # particles available after the crossing
         self.pos = xc[self.i0].astype(np.float64)
         # Only the current particle is constrained: a hand that held C's wound
-        # side (e.g. its tip during a Crossing) lets go now.
+        # side (e.g. its tip during a Crossing) lets go now, unless it carries
+        # the tail (then only the tip stays held).
         after = np.arange(self.i0 + 1, len(xc)) if p.direction > 0 else np.arange(0, self.i0)
         held = self.c.start + after[w.control.is_driven(self.c.start + after).astype(bool)] if len(after) else after
+        self.tip = self.c.start + (len(xc) - 1 if p.direction > 0 else 0)
+        if p.carry_tail > 0:
+            held = held[held != self.tip]
+            self.tip_pos = w.positions()[self.tip].astype(np.float64)
+            w.control.drive([self.tip], self.tip_pos[None, :])
         if len(held):
             w.control.release(held)
         self.x_hat = self.geodesic.x_hat
@@ -167,6 +177,8 @@ class Winding(Maneuver):
         if np.linalg.norm(self.pos - axis) < self.R:
             self.pos = on_tube
         w.control.drive([idx], self.pos[None, :])
+        if p.carry_tail > 0:
+            self._carry_tail(target)
         x = w.positions()[idx]
         self.tick_in_particle += 1
         if np.linalg.norm(x - target) <= p.tolerance * self.c.rod_length and dist <= step:
@@ -188,6 +200,29 @@ class Winding(Maneuver):
             self.progress = 1.0
             return Status.DONE
         return Status.RUNNING
+
+    def _carry_tail(self, target: np.ndarray) -> None:
+        """Hold C's tip out along G's tangent at the current target, like a hand passing it around T.
+
+        The tail then sweeps around T with the winding instead of dangling on
+        whichever side gravity takes it, so the tail leaves the knot the way
+        the winding goes (the knot's identity does not depend on where it
+        falls). The tip moves at most ``tail_speed``.
+        """
+        p, w = self.params, self.world
+        k = min(self.k, self.n - 1)
+        a, b = self.targets[max(k - 1, 0)], self.targets[min(k + 1, self.n - 1)]
+        tangent = b - a
+        norm = float(np.linalg.norm(tangent))
+        if norm < 1e-9:
+            return
+        left = abs(self.tip - self._particle(self.k)) * self.c.rod_length
+        goal = target + (p.carry_tail * left / norm) * tangent
+        d = goal - self.tip_pos
+        dist = float(np.linalg.norm(d))
+        step = p.tail_speed / w.fps
+        self.tip_pos = goal if dist <= step else self.tip_pos + d * (step / dist)
+        w.control.drive([self.tip], self.tip_pos[None, :])
 
     def stop(self) -> None:
         # The last wound particle stays held (paper §4.2: constraining it keeps
