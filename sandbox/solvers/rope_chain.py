@@ -196,6 +196,11 @@ class ChainProjection:
                 if self.contact[b] > 0.0 and (x[a] - x[b]).dot(self.normal[b]) > lift:
                     self.peeled[b] = 1
 
+    @ti.kernel
+    def solve(self):
+        """``solve_f`` as a kernel of its own (the solver fuses it into its substep kernel)."""
+        self.solve_f()
+
     @ti.func
     def solve_f(self):
         """One Newton step of every chain, group after group."""

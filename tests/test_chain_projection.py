@@ -1,0 +1,113 @@
+"""The chain projection kernel (one tridiagonal Newton step per chain) against a NumPy reference."""
+
+import numpy as np
+import pytest
+
+from tests.levelkit import world_from_text
+
+ROPES = """
+version: 1
+name: chains
+scene:
+  gravity: [0, 0, 0]
+  ground: {height: -10.0}
+  ropes:
+    - {name: A, points: [[0, 1, 0], [0.3, 1.1, 0.1], [0.6, 0.9, 0]], rod_length: 0.02, radius: 0.004, pins: [start]}
+    - {name: B, points: [[0, 0.5, 0.5], [0.5, 0.5, 0.2]], rod_length: 0.03, radius: 0.004}
+    - {name: C, points: [[1, 0, 0], [1, 0.4, 0], [1.2, 0.4, 0.3]], rod_length: 0.025, radius: 0.004, pins: [start, end]}
+fsm:
+  - {run: Wait}
+success:
+  - {metric: fsm_state, equals: success}
+"""
+
+
+def chain_step_reference(x, w, groups, touching, normal):
+    """One linearised projection of every chain, group after group (rope_chain.py, in float64).
+
+    ``groups``: per group, ``(particle indices, rest lengths)`` of each chain.
+
+    Per chain: rods j = (a_j, a_j + 1), unit directions n_j and residuals
+    r_j = rest_j - |x_b - x_a| at the current positions; W_i = w_i (I - n n^T)
+    for a particle in contact, w_i I otherwise; the tridiagonal system
+    A_jj = n_j.W_a n_j + n_j.W_b n_j + 1e-6 (w_a + w_b), A_{j,j-1} = -n_{j-1}.W_a n_j
+    is solved for lambda, and x_a -= lambda_j W_a n_j, x_b += lambda_j W_b n_j.
+    Rows with both ends immovable along the rod are inert (lambda = 0).
+    """
+    x = x.astype(np.float64).copy()
+
+    def W(i):
+        m = w[i] * np.eye(3)
+        if touching[i]:
+            m = w[i] * (np.eye(3) - np.outer(normal[i], normal[i]))
+        return m
+
+    for group in groups:
+        y = x.copy()  # a group's chains share no particle: all read the same positions
+        for chain, rr in group:
+            k = len(chain) - 1
+            d = x[chain[1:]] - x[chain[:-1]]
+            length = np.linalg.norm(d, axis=1)
+            n = d / length[:, None]
+            res = rr - length
+            A = np.zeros((k, k))
+            b = res.copy()
+            for j in range(k):
+                a_, b_ = chain[j], chain[j + 1]
+                A[j, j] = n[j] @ W(a_) @ n[j] + n[j] @ W(b_) @ n[j] + 1e-6 * (w[a_] + w[b_])
+                if A[j, j] <= 1e-9 * (w[a_] + w[b_] + 1e-30):
+                    A[j, :] = 0.0
+                    A[j, j] = 1.0
+                    b[j] = 0.0
+                    continue
+                if j > 0:
+                    A[j, j - 1] = -n[j - 1] @ W(a_) @ n[j]
+                if j + 1 < k:
+                    A[j, j + 1] = -n[j] @ W(b_) @ n[j + 1]
+            lam = np.linalg.solve(A, b)
+            for j in range(k):
+                a_, b_ = chain[j], chain[j + 1]
+                y[a_] -= lam[j] * W(a_) @ n[j]
+                y[b_] += lam[j] * W(b_) @ n[j]
+        x = y
+    return x
+
+
+@pytest.mark.parametrize("with_contacts", [False, True])
+def test_chain_kernel_matches_the_numpy_reference(with_contacts):
+    w = world_from_text(ROPES)
+    solver = w.solver
+    chains = solver.inext
+    rng = np.random.default_rng(3)
+    x0 = w.positions().astype(np.float64)
+    x = x0 + rng.normal(scale=0.004, size=x0.shape)  # every rod off its length by up to ~1 cm
+    w.state.x.from_numpy(x.astype(np.float32))
+    # The solver's per-substep inverse masses: the model's, zero where held (the pins).
+    driven = w.control.is_driven(np.arange(len(x))).astype(bool)
+    inv_mass = np.where(driven, 0.0, solver.model.inv_mass.to_numpy()).astype(np.float64)
+    solver.w.from_numpy(inv_mass.astype(np.float32))
+    n = len(x)
+    touching = np.zeros(n, bool)
+    normal = np.tile([0.0, 1.0, 0.0], (n, 1))
+    if with_contacts:
+        touching[rng.choice(n, n // 4, replace=False)] = True
+        normal = rng.normal(size=(n, 3))
+        normal /= np.linalg.norm(normal, axis=1)[:, None]
+    solver.c_hit.from_numpy(touching.astype(np.float32))
+    solver.c_normal.from_numpy(normal.astype(np.float32))
+    a = chains.link_a.to_numpy()
+    rest = chains.rest.to_numpy().astype(np.float64)
+    lo, hi = chains.lo.to_numpy(), chains.hi.to_numpy()
+    groups = []
+    for g0, g1 in chains.group_ranges:
+        groups.append([(np.append(a[lo[c]:hi[c]], a[hi[c] - 1] + 1), rest[lo[c]:hi[c]]) for c in range(g0, g1)])
+    expect = chain_step_reference(x, inv_mass, groups, touching, normal)
+    chains.solve()
+    got = w.state.x.to_numpy().astype(np.float64)
+    assert np.abs(got - x).max() > 1e-3  # the step moved the particles
+    np.testing.assert_allclose(got, expect, atol=2e-6)
+    # Pinned particles (w = 0) did not move; rods are much closer to their length.
+    pinned = inv_mass == 0
+    assert pinned.sum() == 3
+    np.testing.assert_array_equal(got[pinned], x[pinned].astype(np.float32).astype(np.float64))
+
