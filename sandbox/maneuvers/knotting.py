@@ -29,6 +29,11 @@ def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     return v / n if n > 1e-9 else fallback
 
 
+def _flat(v: np.ndarray) -> np.ndarray:
+    """``v`` with its vertical component removed."""
+    return np.array([v[0], 0.0, v[2]])
+
+
 def _other_end(site: Site) -> Site:
     return {"end": "start", "start": "end", -1: 0, 0: -1}.get(site, "start")
 
@@ -134,8 +139,8 @@ class CrossingParams(Params):
     active_tip: Site = "end"  # C's particle that is moved (held by the hand)
     target_tip: Site | None = "end"  # T's particle that is moved; None keeps T where it is
     # C's constrained bottom point (default: the end opposite its tip);
-    # "contact": where the strand leaves the other one on its way to the tip
-    # (a knot tied before, e.g. the first half of a granny knot).
+    # "contact": where the strand's rope leaves a knot tied before on its way
+    # to the tip (e.g. the first half of a granny knot).
     active_base: Site | Literal["contact"] | None = None
     target_base: Site | Literal["contact"] | None = None
     height: Annotated[float, pydantic.Field(gt=0)] = 0.15  # m, X above the bottoms
@@ -184,10 +189,9 @@ class Crossing(Maneuver):
         len_t = self.t.rod_length * abs(float(tip_t_idx.mean() - base_t.mean()))
         bc, bt = x[base_c].mean(axis=0), x[base_t].mean(axis=0)
         across = None
-        flat = lambda v: np.array([v[0], 0.0, v[2]])  # noqa: E731
-        if np.linalg.norm(flat(bt - bc)) < 4.0 * (self.c.radius + self.t.radius):
+        if np.linalg.norm(_flat(bt - bc)) < 4.0 * (self.c.radius + self.t.radius):
             # Both strands leave one knot: C's tip goes over to T's tip's side.
-            across = flat(x[tip_t_idx].mean(axis=0) - x[tip_c_idx].mean(axis=0))
+            across = _flat(x[tip_t_idx].mean(axis=0) - x[tip_c_idx].mean(axis=0))
         self.x, tip_c, tip_t, self.xhat, zhat = crossing_targets(
             bc, bt, len_c, len_t, height=p.height, sign=p.sign, gap=gap, slack=p.slack,
             elevation=p.elevation, across=across)

@@ -226,8 +226,8 @@ class Winding(Maneuver):
 
     def stop(self) -> None:
         # The last wound particle stays held (paper §4.2: constraining it keeps
-        # the winding); a later Tightening or Release frees it. T's straightened
-        # run stays held too, so that the winding keeps its shape until then.
+        # the winding), and so do a carried tip and T's straightened run, so
+        # that the winding keeps its shape until a Tightening or Release.
         if self.k < self.n:
             self.world.control.release([self._particle(self.k)])
         elif self.params.follow:
