@@ -91,14 +91,22 @@ def closest_approach(xc: np.ndarray, xt: np.ndarray, gc: np.ndarray, gt: np.ndar
     return float(d[i, j]), int(i), int(j)
 
 
+def _same_bend(c, t) -> float:
+    """Particles of one rope closer than this along it are the same bend, not a crossing.
+
+    Half a turn of the strands' bounding tube (radius 1.1 (r_C + r_T)), in
+    rods, plus two.
+    """
+    return np.pi * 1.1 * (c.radius + t.radius) / min(c.rod_length, t.rod_length) + 2
+
+
 def strand_approach(x: np.ndarray, c, t):
     """``closest_approach`` of strands ``c`` and ``t`` (``RopeRange``) in positions ``x``.
 
     Two strands of one rope skip pairs within half a turn of their bounding
     tube (radius 1.1 (r_C + r_T)) of each other along the rope.
     """
-    same = base_name(c.name) == base_name(t.name)
-    exclude = (np.pi * 1.1 * (c.radius + t.radius) / min(c.rod_length, t.rod_length) + 2) if same else -1.0
+    exclude = _same_bend(c, t) if base_name(c.name) == base_name(t.name) else -1.0
     return closest_approach(x[c.start:c.end], x[t.start:t.end],
                             np.arange(c.start, c.end), np.arange(t.start, t.end), exclude)
 
@@ -117,8 +125,7 @@ def knot_exit(x: np.ndarray, strand, others, toward: int) -> int | None:
         d = np.linalg.norm(xs[:, None, :] - x[o.start:o.end][None, :, :], axis=2)
         if base_name(o.name) == base_name(strand.name):
             gi = np.arange(strand.start, strand.end)[:, None] - np.arange(o.start, o.end)[None, :]
-            exclude = np.pi * 1.1 * (strand.radius + o.radius) / min(strand.rod_length, o.rod_length) + 2
-            d = np.where(np.abs(gi) > exclude, d, np.inf)
+            d = np.where(np.abs(gi) > _same_bend(strand, o), d, np.inf)
         near |= (d <= 1.5 * (strand.radius + o.radius)).any(axis=1)
     touching = np.flatnonzero(near)
     if not len(touching):
