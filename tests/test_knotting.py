@@ -177,6 +177,36 @@ def test_crossing_two_ropes_makes_a_crossing_of_the_asked_sign(sign):
     assert gap.min() > -0.1 * 0.008
 
 
+JOINED = """
+version: 1
+name: cross_joined
+scene:
+  gravity: [0, -9.81, 0]
+  ropes:
+    - {name: A, points: [[-0.01, 0.3, 0], [-0.15, 0.3, 0], [-0.15, 0.8, 0]], rod_length: 0.01, radius: 0.006}
+    - {name: B, points: [[0.01, 0.3, 0], [0.15, 0.3, 0], [0.15, 0.8, 0]], rod_length: 0.01, radius: 0.006}
+sim: {fps: 60, substeps: 10, iterations: 2}
+fsm:
+  - {run: Anchoring, with: {body: A, sites: [start, 14, end]}}
+  - {run: Anchoring, with: {body: B, sites: [start, 14, end]}}
+  - {run: Crossing, with: {active: B, target: A, active_base: 14, target_base: 14, height: 0.12, slack: 0.97},
+     timeout: 300}
+"""
+
+
+def test_crossing_is_found_between_the_bottoms_and_the_tips():
+    """Standing ends held side by side below the bottoms (two corners a cloth joins) are not the crossing."""
+    w = _world(JOINED)
+    for _ in range(300):
+        w.step()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    x = w.crossings[("B", "A")]
+    assert x[1] > 0.3 + 0.06, x  # up where the strands cross, not at the held ends (0.02 m apart)
+    assert abs(x[0]) < 0.05
+
+
 PULL = """
 version: 1
 name: pull
@@ -208,6 +238,93 @@ def test_tightening_stops_when_the_rope_is_taut():
     assert np.abs(seg / 0.02 - 1).max() < 0.01
     # Held back inside the rope's reach, not pulled the full 0.2 m.
     assert np.linalg.norm(x[-1] - x[0]) <= np.linalg.norm(x0[-1] - x0[0]) + 1e-3
+
+
+SLACK_PULL = """
+version: 1
+name: slack_pull
+scene:
+  ropes:
+    - {name: R, points: [[-0.2, 0.5, 0], [0, 0.36733, 0], [0.2, 0.5, 0]], rod_length: 0.02,
+       radius: 0.005, mass: 0.05}
+sim: {fps: 60, substeps: 10, iterations: 2}
+fsm:
+  - {run: Anchoring, with: {body: R, sites: [start, end]}}
+  - {run: Wait, with: {seconds: 0.5}}
+  - {run: Tightening, with: {pulls: [{body: R, site: end, direction: [1, 0, 0]}],
+                             keep: [{body: R, sites: [start]}], force: 1.0, speed: 0.2, settle_speed: 0.002,
+                             distance: 0.5}}
+"""
+
+
+def test_tightening_by_force_pulls_until_the_rope_stops_then_holds():
+    """An end pulled by a force (no set path) straightens a slack rope, stops and is held where it stopped.
+
+    The other end is kept. At rest the horizontal pull F balances the rope's
+    weight W about the kept end: the (nearly straight) rope hangs
+    tan(phi) = W / (2F) below the horizontal, 13.8 degrees here.
+    """
+    w = _world(SLACK_PULL)
+    x0 = w.rope_positions("R").copy()
+    length = 0.02 * (len(x0) - 1)
+    n = len(x0)
+    for _ in range(60):
+        w.step()
+        if "Tightening" in w.fsm.state:
+            break
+    assert w.control.is_pulled([n - 1]).all() and w.control.is_driven([0]).all()
+    kept = w.rope_positions("R")[0].copy()
+    prev = w.rope_positions("R")[-1].copy()
+    top = 0.0
+    for _ in range(700):
+        w.step()
+        now = w.rope_positions("R")[-1]
+        top = max(top, float(np.linalg.norm(now - prev)) * 60)
+        prev = now.copy()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    assert top <= 0.2 * 1.05  # never faster than force / drag
+    x = w.rope_positions("R")
+    assert w.control.is_driven([0, n - 1]).all()  # held where it stopped
+    np.testing.assert_allclose(x[0], kept, atol=1e-6)  # the kept end did not move
+    span = x[-1] - x[0]
+    assert 0.97 * length < float(np.linalg.norm(span)) <= 1.005 * length  # pulled straight, not stretched
+    phi = np.degrees(np.arctan2(-span[1], span[0]))
+    # Stopped means the end moves slower than settle_speed: what is left of the
+    # pull's imbalance is at most drag * settle_speed = 0.01 N of F = 1 N.
+    assert phi == pytest.approx(np.degrees(np.arctan(0.05 * 9.81 / 2.0)), abs=1.5)
+    seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    assert np.abs(seg / 0.02 - 1).max() < 0.01
+    for _ in range(30):
+        w.step()
+    np.testing.assert_allclose(w.rope_positions("R")[[0, -1]], x[[0, -1]], atol=1e-6)
+
+
+def test_tightening_by_force_toward_a_point_keeps_aiming_at_it():
+    """A pull ``toward`` a point turns with the end: the end heads for the point and stops short of it."""
+    goal = np.array([0.5, 0.9, 0.0])
+    w = _world(SLACK_PULL.replace("direction: [1, 0, 0]", "toward: [0.5, 0.9, 0]"))
+    for _ in range(60):
+        w.step()
+        if "Tightening" in w.fsm.state:
+            break
+    start = w.rope_positions("R")[-1].copy()
+    for _ in range(10):
+        w.step()
+    moved = w.rope_positions("R")[-1] - start
+    assert moved @ (goal - start) / (np.linalg.norm(moved) * np.linalg.norm(goal - start)) > 0.9
+    for _ in range(700):
+        w.step()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    x = w.rope_positions("R")
+    length = 0.02 * (len(x) - 1)
+    # The rope's reach stops it; the pull (1 N) outweighs the rope (0.49 N), so it ends above the kept end.
+    assert float(np.linalg.norm(x[-1] - x[0])) == pytest.approx(length, rel=0.03)
+    assert x[-1, 1] > x[0, 1]
+    assert np.linalg.norm(x[-1] - goal) < np.linalg.norm(start - goal)
 
 
 def test_crossing_above_a_contact_fails_when_the_strands_do_not_touch():

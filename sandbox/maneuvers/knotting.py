@@ -11,6 +11,7 @@ ropes or two control lines.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Annotated, Literal, Union
 
 import numpy as np
@@ -133,6 +134,12 @@ def knot_exit(x: np.ndarray, strand, others, toward: int) -> int | None:
     return strand.start + int(touching[np.argmin(np.abs(touching - (toward - strand.start)))])
 
 
+def _between(strand, base: np.ndarray, tip: np.ndarray):
+    """The part of ``strand`` (``RopeRange``) from its bottom particles to its tip's, both included."""
+    lo, hi = int(min(base.min(), tip.min())), int(max(base.max(), tip.max())) + 1
+    return dataclasses.replace(strand, start=max(lo, strand.start), end=min(hi, strand.end))
+
+
 def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
     """``point`` pulled back onto the ball around ``centre`` (a tip cannot go past its rope's reach)."""
     v = point - centre
@@ -187,10 +194,15 @@ class Crossing(Maneuver):
         base_c = self._base(x, self.c, self.t, p.active, p.active_base, p.active_tip, tip_c_idx)
         base_t = self._base(x, self.t, self.c, p.target, p.target_base, tip_t_site, tip_t_idx)
         self.moves = []  # (particle indices, current command, waypoints)
+        self.c_part, self.t_part = self.c, self.t
         if base_c is None or base_t is None:
             return  # ``update`` reports the failure with the message
         gap = p.gap if p.gap is not None else 1.5 * (self.c.radius + self.t.radius)
         self.gap = gap
+        # The strands cross between their bottoms and their tips: ends held
+        # side by side below the bottoms (two ropes a cloth joins) are not it.
+        self.c_part = _between(self.c, base_c, tip_c_idx)
+        self.t_part = _between(self.t, base_t, tip_t_idx)
         # Rope length between each bottom and its tip (not the whole strand).
         len_c = self.c.rod_length * abs(float(tip_c_idx.mean() - base_c.mean()))
         len_t = self.t.rod_length * abs(float(tip_t_idx.mean() - base_t.mean()))
@@ -288,8 +300,8 @@ class Crossing(Maneuver):
 
     def approach(self, x: np.ndarray):
         """Closest approach of C and T now: ``(distance, point on C, point on T)``."""
-        d, i, j = strand_approach(x, self.c, self.t)
-        return d, x[self.c.start + i], x[self.t.start + j]
+        d, i, j = strand_approach(x, self.c_part, self.t_part)
+        return d, x[self.c_part.start + i], x[self.t_part.start + j]
 
     def metrics(self) -> dict[str, float]:
         return {"miss": self.approach(self.world.positions().astype(np.float64))[0]}
@@ -301,6 +313,7 @@ class Pull(Params):
     body: str
     site: Site = "end"
     direction: Vec3 | Literal["away"] = "away"  # "away": from the knot's centre
+    toward: Vec3 | None = None  # m: pull toward this point instead (overrides ``direction``)
 
 
 class Kept(Params):
@@ -315,6 +328,12 @@ class TighteningParams(Params):
     keep: list[Kept] = []  # held sites that ``release_others`` does not let go
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
+    # N: pull each end with this force instead of moving it; ``speed`` is then
+    # its top speed (drag force / speed). The knot settles where the tensions
+    # balance, and is tight when the ends stop.
+    force: Annotated[float, pydantic.Field(gt=0)] | None = None
+    settle_speed: Annotated[float, pydantic.Field(gt=0)] = 0.02  # m/s below which a pulled end has stopped
+    settle_frames: Annotated[int, pydantic.Field(ge=1)] = 15  # frames every end must stay stopped
     distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
     max_strain: Annotated[float, pydantic.Field(gt=0)] = 0.003  # rod strain that means "tight"
     max_overlap: Annotated[float, pydantic.Field(gt=0)] = 0.05  # capsule overlap / radius that means "tight"
@@ -334,6 +353,15 @@ class Tightening(Maneuver):
     two rope capsules into each other by more than ``max_overlap`` of a
     radius: collisions stay hard, so the ends give back ``backoff`` and are
     held there. Done when tight or after ``distance``.
+
+    With ``force`` the hands pull instead of moving: each end stays dynamic
+    and feels ``force`` newtons along its direction and a drag that keeps it
+    below ``speed`` (a hand's give), so the knot slides to
+    where the tensions balance (a knot between two held standing parts is
+    drawn to the middle rather than to the hand that stops last). It is tight
+    when every end has moved slower than ``settle_speed`` for
+    ``settle_frames`` frames (or by the strain and overlap tests above); the
+    ends are then held where they are.
     """
 
     name = "Tightening"
@@ -358,14 +386,22 @@ class Tightening(Maneuver):
         for q in p.pulls:
             idx = w.site_particles(q.body, q.site)
             pos = x[idx].mean(axis=0)
-            if q.direction == "away":
+            if q.toward is not None:
+                d = _unit(np.asarray(q.toward, float) - pos, _UP)
+            elif q.direction == "away":
                 d = _unit(pos - self.centre, _UP)
             else:
                 d = _unit(np.asarray(q.direction, float), _UP)
             self.ends.append((idx, pos, d))
-            w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+            if p.force is None:
+                w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+            else:
+                w.control.pull(idx, np.repeat((p.force / len(idx)) * d[None], len(idx), axis=0),
+                               p.force / p.speed / len(idx))
         self.pulled = 0.0
         self.tight = False
+        self.still = 0  # frames in a row that every pulled end has been still (force mode)
+        self.last_pos = [pos for _, pos, _ in self.ends]
 
     def _knot_centre(self, x: np.ndarray) -> np.ndarray:
         rec = getattr(self.world, "windings", {})
@@ -393,12 +429,41 @@ class Tightening(Maneuver):
                     overlap = max(overlap, float(-g.min()) / s.radius)
         return strain, overlap
 
+    def _hold_ends(self, x: np.ndarray) -> None:
+        """Hold every pulled end where it is now."""
+        for idx, _, _ in self.ends:
+            self.world.control.drive(idx, x[idx])
+
+    def _update_pulling(self, x: np.ndarray, strain: float, overlap: float) -> Status:
+        """Force mode: watch the ends until they stop, then hold them."""
+        p, w = self.params, self.world
+        now = [x[idx].mean(axis=0) for idx, _, _ in self.ends]
+        speed = max(float(np.linalg.norm(a - b)) * w.fps for a, b in zip(now, self.last_pos))
+        self.last_pos = now
+        self.pulled = max(float(np.linalg.norm(a - pos)) for a, (_, pos, _) in zip(now, self.ends))
+        for q, a, (idx, _, _) in zip(p.pulls, now, self.ends):
+            if q.toward is not None:  # the pull turns to keep pointing at its point
+                d = _unit(np.asarray(q.toward, float) - a, _UP)
+                w.control.pull(idx, np.repeat((p.force / len(idx)) * d[None], len(idx), axis=0),
+                               p.force / p.speed / len(idx))
+        self.still = self.still + 1 if speed < p.settle_speed else 0
+        self.progress = min(self.pulled / p.distance, 1.0)
+        tight = strain > p.max_strain or overlap > p.max_overlap or self.still >= p.settle_frames
+        if tight or self.pulled >= p.distance:
+            self._hold_ends(x)
+            self.tight = tight
+            self.progress = 1.0
+            return Status.DONE
+        return Status.RUNNING
+
     def update(self) -> Status:
         p, w = self.params, self.world
         self.ticks += 1
         x = w.positions().astype(np.float64)
         strain, overlap = self._tension(x)
         self.last = (strain, overlap)
+        if p.force is not None:
+            return self._update_pulling(x, strain, overlap)
         step = p.speed / w.fps
         if strain > p.max_strain or overlap > p.max_overlap:
             # Tight: give back ``backoff`` and hold the ends there, so that a

@@ -122,11 +122,15 @@ class Control:
     A driven particle moves on a straight line from ``src`` (its position at
     the start of the frame) to ``dst`` during the frame's substeps and has no
     inverse mass for the solver. Maneuvers pass intermediate targets, so
-    ``dst`` is never far away.
+    ``dst`` is never far away. A pulled particle stays dynamic and feels a
+    constant force ``f`` and a drag ``-b v`` (a hand that pulls with a given
+    tension instead of moving to a given place, at most at speed |f| / b).
 
     Fields:
-        driven: (n,) i32, 1 if kinematic.
+        driven: (n,) i32, 1 if kinematic, 2 if pulled by ``force``, else 0.
         src, dst: (n,) vec3 f32, m.
+        force: (n,) vec3 f32, N, on pulled particles.
+        drag: (n,) f32, N s/m, on pulled particles.
     """
 
     def __init__(self, n: int, x0: np.ndarray) -> None:
@@ -134,8 +138,12 @@ class Control:
         self.driven = ti.field(ti.i32, shape=n)
         self.src = ti.Vector.field(3, ti.f32, shape=n)
         self.dst = ti.Vector.field(3, ti.f32, shape=n)
+        self.force = ti.Vector.field(3, ti.f32, shape=n)
+        self.drag = ti.field(ti.f32, shape=n)
         self._driven = np.zeros(n, np.int32)
         self._dst = np.asarray(x0, np.float32).copy()
+        self._force = np.zeros((n, 3), np.float32)
+        self._drag = np.zeros(n, np.float32)
         self._dirty = True
 
     def drive(self, idx, targets) -> None:
@@ -143,33 +151,55 @@ class Control:
         idx = np.atleast_1d(np.asarray(idx, np.int64))
         self._driven[idx] = 1
         self._dst[idx] = np.asarray(targets, np.float32).reshape(len(idx), 3)
+        self._force[idx] = 0.0
+        self._drag[idx] = 0.0
+        self._dirty = True
+
+    def pull(self, idx, forces, drag) -> None:
+        """Let particles ``idx`` move under gravity, constant ``forces`` (N, one
+        per particle) and a drag of ``drag`` N s/m (their speed stays below |f| / drag)."""
+        idx = np.atleast_1d(np.asarray(idx, np.int64))
+        self._driven[idx] = 2
+        self._force[idx] = np.asarray(forces, np.float32).reshape(len(idx), 3)
+        self._drag[idx] = drag
         self._dirty = True
 
     def release(self, idx) -> None:
-        """Let particles ``idx`` move freely again."""
-        self._driven[np.atleast_1d(np.asarray(idx, np.int64))] = 0
+        """Let particles ``idx`` move freely again (neither driven nor pulled)."""
+        idx = np.atleast_1d(np.asarray(idx, np.int64))
+        self._driven[idx] = 0
+        self._force[idx] = 0.0
+        self._drag[idx] = 0.0
         self._dirty = True
 
     def is_driven(self, idx) -> np.ndarray:
         """Whether particles ``idx`` are kinematic."""
-        return self._driven[np.asarray(idx)].astype(bool)
+        return self._driven[np.asarray(idx)] == 1
+
+    def is_pulled(self, idx) -> np.ndarray:
+        """Whether particles ``idx`` are pulled by a force."""
+        return self._driven[np.asarray(idx)] == 2
+
+    def forces(self) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 3) forces (N) and (n,) drags (N s/m) on pulled particles, zero elsewhere."""
+        return self._force.astype(np.float64), self._drag.astype(np.float64)
 
     def target(self, idx) -> np.ndarray:
         """Current targets of particles ``idx`` (m)."""
         return self._dst[np.asarray(idx)].copy()
 
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
-        """Copy of the host-side targets (for rollback)."""
-        return self._driven.copy(), self._dst.copy()
+    def snapshot(self) -> tuple:
+        """Copy of the host-side targets and forces (for rollback)."""
+        return self._driven.copy(), self._dst.copy(), self._force.copy(), self._drag.copy()
 
-    def restore(self, snap: tuple[np.ndarray, np.ndarray]) -> None:
+    def restore(self, snap: tuple) -> None:
         """Restore a :meth:`snapshot`; uploaded at the next frame."""
-        self._driven[:], self._dst[:] = snap
+        self._driven[:], self._dst[:], self._force[:], self._drag[:] = snap
         self._dirty = True
 
     @property
     def driven_indices(self) -> np.ndarray:
-        return np.flatnonzero(self._driven)
+        return np.flatnonzero(self._driven == 1)
 
     def upload(self) -> bool:
         """Send changed targets to the device; True if anything changed."""
@@ -177,5 +207,7 @@ class Control:
             return False
         self.driven.from_numpy(self._driven)
         self.dst.from_numpy(self._dst)
+        self.force.from_numpy(self._force)
+        self.drag.from_numpy(self._drag)
         self._dirty = False
         return True

@@ -33,6 +33,7 @@ class ReferenceRopeSolver:
         pinned = np.zeros(data.n_particles, bool)
         pinned[data.pins] = True
         self.pinned = pinned
+        self.inv_mass = np.asarray(data.inv_mass, np.float64)
         system = RopeSystem(
             x=data.x0, rope_ranges=[(r.start, r.end) for r in data.ropes],
             rest_length=np.array([r.rod_length for r in data.ropes]),
@@ -61,9 +62,19 @@ class ReferenceRopeSolver:
         src = x[driven].copy()
         dst = ctl.target(driven).astype(np.float64)
         dt = w.dt / substeps
+        # Pulled particles (Control.pull): force f and drag -b v on top of
+        # gravity, the drag implicit as in the fast solver. The projection
+        # (Eq. 6) has no masses, so a pulled particle does not weigh m + b h
+        # in it as it does in the fast solver.
+        force, drag = ctl.forces()
+        pulled = np.flatnonzero(ctl.is_pulled(np.arange(len(x))))
         for k in range(substeps):
             frac = (k + 1) / substeps
             targets = [(int(i), src[j] + frac * (dst[j] - src[j])) for j, i in enumerate(driven)]
+            if len(pulled):
+                wi = self.inv_mass[pulled, None]
+                v[pulled] = (v[pulled] + dt * self.gravity + dt * wi * force[pulled]) / (1.0 + dt * wi * drag[pulled, None])
+                v[pulled] -= dt * self.gravity  # the step adds gravity itself
             x, v = self.solver.step(x, v, dt, self.gravity, targets)
         w.state.x.from_numpy(x.astype(np.float32))
         w.state.v.from_numpy(v.astype(np.float32))

@@ -2,7 +2,7 @@
 
 Per substep (each pass O(n) in particles or constraints):
 
-1. predict: gravity, damping, kinematic targets (Control) -- O(n)
+1. predict: gravity, pulling forces, damping, kinematic targets (Control) -- O(n)
 2. broad phase: spatial hashes of cloth particles and rope segments -- O(n)
 3. distance constraints (rods Eq. 2, bending Eq. 3, cloth edges), graph
    coloured Gauss-Seidel: each colour is one parallel loop with disjoint
@@ -144,10 +144,18 @@ class XPBDSolver:
         ctl = self.ctl
         for i in st.x:
             st.x_prev[i] = st.x[i]
-            if ctl.driven[i]:
+            mode = ctl.driven[i]
+            if mode == 1:
                 st.x[i] = ctl.src[i] + frac * (ctl.dst[i] - ctl.src[i])
             else:
                 v = st.v[i] + dt * self.gravity
+                if mode == 2:
+                    # Pulled: force f and drag -b v, the drag implicit (backward
+                    # Euler), so the particle also weighs m + b dt in the
+                    # constraint passes of this substep.
+                    wi = self.model.inv_mass[i]
+                    v = (v + dt * wi * ctl.force[i]) / (1.0 + dt * wi * ctl.drag[i])
+                    self.w[i] = wi / (1.0 + dt * wi * ctl.drag[i])
                 v *= ti.max(1.0 - self.model.damping[i] * dt, 0.0)
                 st.v[i] = v
                 st.x[i] = st.x[i] + dt * v
@@ -249,7 +257,7 @@ class XPBDSolver:
     @ti.kernel
     def _begin_frame_k(self):
         for i in self.st.x:
-            self.w[i] = self.model.inv_mass[i] * (1 - self.ctl.driven[i])
+            self.w[i] = self.model.inv_mass[i] * ti.cast(self.ctl.driven[i] != 1, ti.f32)
             self.ctl.src[i] = self.st.x[i]
 
     @ti.kernel
