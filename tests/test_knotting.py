@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sandbox.geometry.knots import identify_knot
-from sandbox.geometry.tube import smooth_axis
+from sandbox.geometry.tube import sample_targets, smooth_axis
 from sandbox.levels import LevelError, load_level_from_string
 from sandbox.maneuvers.knotting import closest_approach, crossing_targets, knot_exit
 from sandbox.model.strands import parse_strand
@@ -327,6 +327,38 @@ def test_tightening_by_force_toward_a_point_keeps_aiming_at_it():
     assert np.linalg.norm(x[-1] - goal) < np.linalg.norm(start - goal)
 
 
+TOUCHING = """
+version: 1
+name: touching
+scene:
+  ropes:
+    - {name: A, points: [[-0.3, 0.5, 0], [0.3, 0.5, 0]], rod_length: 0.01, radius: 0.006, pins: [start, end]}
+    - {name: B, points: [[0, 0.512, -0.3], [0, 0.512, 0.3]], rod_length: 0.01, radius: 0.006, pins: [start, end]}
+sim: {fps: 60, substeps: 10, iterations: 2}
+fsm:
+  - {run: Crossing, with: {active: B, target: A, active_base: contact, target_base: contact,
+                           contact_offset: OFFSET}, timeout: 300}
+"""
+
+
+def test_crossing_contact_offset_pinches_each_strand_out_of_the_contact():
+    """With contact_offset the bottoms are that far from the contact towards each tip, and held there."""
+    from sandbox.maneuvers.knotting import knot_exit
+
+    w = _world(TOUCHING.replace("OFFSET", "0.05"))
+    x = w.positions().astype(np.float64)
+    a, b = w._rope("A"), w._rope("B")
+    exits = [knot_exit(x, r, [a, b], r.end - 1) for r in (a, b)]
+    assert all(e is not None for e in exits)
+    w.step()
+    for e, r in zip(exits, (a, b)):
+        assert w.control.is_driven([e + 5])[0]  # 5 rods of 0.01 m towards the tip at r.end - 1
+        assert not w.control.is_driven([e])[0]
+    w0 = _world(TOUCHING.replace("OFFSET", "0"))
+    w0.step()
+    assert not w0.control.is_driven([e + 5 for e in exits]).any()  # without an offset nothing is pinched
+
+
 def test_crossing_above_a_contact_fails_when_the_strands_do_not_touch():
     w = _world(TWO_ROPES.replace("sign: SIGN,", "sign: 1, active_base: contact, target_base: contact,"))
     for _ in range(5):
@@ -515,6 +547,55 @@ def test_winding_carries_the_tail_along_the_geodesic_tangent():
 def test_winding_without_carry_lets_the_tail_go():
     _, _, held = _wind_with_tail(0.0)
     assert held and not any(held[1:])
+
+
+def _wind(extra: str):
+    """rope_wind with extra Winding parameters, run until the winding is done."""
+    text = (ROOT / "levels" / "rope_wind.yaml").read_text()
+    text = text.replace("handedness: 1}, timeout: 150}", f"handedness: 1, {extra}}}, timeout: 300}}")
+    w = _world(text)
+    m, i0_held_midway = None, None
+    while w.fsm.state != "2:Wait" and not w.fsm.finished:
+        w.step()
+        if w.fsm.state == "1:Winding":
+            m = w.fsm._maneuver
+            if m.k == 2:
+                i0_held_midway = bool(w.control.is_driven([m._particle(0)])[0])
+    assert w.fsm.state == "2:Wait", w.fsm.events
+    return w, m, i0_held_midway
+
+
+@pytest.mark.parametrize("square", [False, True])
+def test_winding_exit_lays_the_tail_straight_out_of_the_turns(square):
+    """``exit`` drives C's particles after the turns onto a line from G's end along its last tangent."""
+    w, m, _ = _wind("exit: 0.06" + (", exit_square: true" if square else ""))
+    x = w.positions().astype(np.float64)
+    turns = m.n_turns
+    assert m.n == turns + 6  # 0.06 m at C's 0.01 m rods
+    g = sample_targets(m.geodesic, m.c.rod_length)
+    t = g[-1] - g[-2]
+    if square:
+        t = t - (t @ m.geodesic.x_hat) * m.geodesic.x_hat
+        assert abs(float(t @ m.geodesic.x_hat)) < 1e-9
+    t /= np.linalg.norm(t)
+    line = g[-1] + np.outer(np.arange(1, 7) * m.c.rod_length, t)
+    np.testing.assert_allclose(m.targets[turns:], line, atol=1e-9)
+    exit_particles = [m._particle(k) for k in range(turns - 1, m.n)]
+    # The last one is held at the line's end (the others are let go as the next one is laid).
+    np.testing.assert_allclose(x[exit_particles[-1]], line[-1], atol=0.25 * m.c.rod_length)
+    assert w.control.is_driven([exit_particles[-1]])[0] and not w.control.is_driven(exit_particles[1:-1]).any()
+    # The knot's record (Tightening pulls away from its centre) is the turns alone.
+    rec = w.windings[("C", "T")]["particles"]
+    assert rec.max() == m._particle(turns - 1) and rec.min() == m._particle(0)
+
+
+def test_winding_pinch_holds_the_crossing_until_the_end():
+    _, m, held_midway = _wind("pinch: true")
+    assert held_midway
+    w = m.world
+    assert w.control.is_driven([m._particle(0), m._particle(m.n - 1)]).all()
+    _, m2, held2 = _wind("pinch: false")
+    assert not held2 and not m2.world.control.is_driven([m2._particle(0)])[0]
 
 
 SHIFTS = [(0, 0, 0), (0, 0.01, 0), (0, -0.02, 0), (0, 0.3, 0), (0.05, 0, 0), (0, 0, 0.3)]

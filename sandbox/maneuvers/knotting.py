@@ -157,6 +157,10 @@ class CrossingParams(Params):
     # to the tip (e.g. the first half of a granny knot).
     active_base: Site | Literal["contact"] | None = None
     target_base: Site | Literal["contact"] | None = None
+    # m along each strand from its "contact" towards its tip where a hand
+    # pinches it (held through the crossing): the bottoms of a second half
+    # knot then sit apart, on either side of the first, as the strands leave it.
+    contact_offset: Annotated[float, pydantic.Field(ge=0)] = 0.0
     height: Annotated[float, pydantic.Field(gt=0)] = 0.15  # m, X above the bottoms
     sign: Literal[1, -1] = 1  # +1: C passes in front of T (on +z)
     gap: Annotated[float, pydantic.Field(ge=0)] | None = None  # m; default 1.5 (r_C + r_T)
@@ -252,10 +256,15 @@ class Crossing(Maneuver):
         # rope, at every part of the ropes it could touch.
         whole, other_whole = self.world._rope(base_name(strand.name)), self.world._rope(base_name(other.name))
         parts = [whole] if other_whole.name == whole.name else [whole, other_whole]
-        k = knot_exit(x, whole, parts, int(tip_idx.mean()))
+        tip = int(tip_idx.mean())
+        k = knot_exit(x, whole, parts, tip)
         if k is None:
             self.message = f"strand {body!r} does not touch {other.name!r}: no contact to cross above"
             return None
+        if self.params.contact_offset > 0:
+            step = int(round(self.params.contact_offset / strand.rod_length))
+            k = int(np.clip(k + np.sign(tip - k) * step, min(k, tip), max(k, tip)))
+            self.world.control.drive([k], x[k][None, :])  # pinched where it is
         return np.array([k])
 
     def update(self) -> Status:
@@ -360,8 +369,9 @@ class Tightening(Maneuver):
     where the tensions balance (a knot between two held standing parts is
     drawn to the middle rather than to the hand that stops last). It is tight
     when every end has moved slower than ``settle_speed`` for
-    ``settle_frames`` frames (or by the strain and overlap tests above); the
-    ends are then held where they are.
+    ``settle_frames`` frames (the force, not ``max_strain`` or
+    ``max_overlap``, bounds how hard the rope is pulled); the ends are then
+    held where they are.
     """
 
     name = "Tightening"
@@ -448,7 +458,8 @@ class Tightening(Maneuver):
                                p.force / p.speed / len(idx))
         self.still = self.still + 1 if speed < p.settle_speed else 0
         self.progress = min(self.pulled / p.distance, 1.0)
-        tight = strain > p.max_strain or overlap > p.max_overlap or self.still >= p.settle_frames
+        # The force bounds the tension: the knot is as tight as this pull makes it once the ends stop.
+        tight = self.still >= p.settle_frames
         if tight or self.pulled >= p.distance:
             self._hold_ends(x)
             self.tight = tight

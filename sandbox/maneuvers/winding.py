@@ -40,6 +40,17 @@ class WindingParams(Params):
     # (fraction of the tail's length it is held out by); 0 lets the tail dangle.
     carry_tail: Annotated[float, pydantic.Field(ge=0, lt=1)] = 0.0
     tail_speed: Annotated[float, pydantic.Field(gt=0)] = 1.5  # m/s of the carried tip
+    # m of C after the turns laid one particle at a time on a straight line
+    # from G's end along its last tangent (at most to C's tip): the tail is
+    # threaded out of the turns the way G leaves them, rather than left to
+    # dangle back through them. ``exit_square`` drops the tangent's part
+    # along T, so that the line leaves T square to it (not down T into a
+    # knot tied before).
+    exit: Annotated[float, pydantic.Field(ge=0)] = 0.0
+    exit_square: bool = False
+    # Hold C's crossing particle for the whole winding (a hand pinching the
+    # crossing), so that the turns cannot slide along T while they are laid.
+    pinch: bool = False
 
 
 @register
@@ -73,10 +84,10 @@ class Winding(Maneuver):
         self.tick_in_particle = 0
         self.targets = self._targets(xt)
         n_left = (len(xc) - 1 - self.i0) if p.direction > 0 else self.i0
-        if len(self.targets) - 1 > n_left:
+        if self.n_turns - 1 > n_left:
             self.message = (f"rope {p.active!r} has {n_left} particles after the crossing; "
-                            f"the winding needs {len(self.targets) - 1}")
-            self.targets = self.targets[: n_left + 1]
+                            f"the winding needs {self.n_turns - 1}")
+        self.targets = self.targets[: n_left + 1]  # an exit runs to C's tip at most
         self.n = len(self.targets)
         self.n_max = n_left + 1  # particles available after the crossing
         self.pos = xc[self.i0].astype(np.float64)
@@ -146,7 +157,18 @@ class Winding(Maneuver):
         self.tube = tube
         self.geodesic = trace_geodesic(tube, self.cross, theta=np.radians(p.theta), w0=p.w0,
                                        handedness=p.handedness, along=p.along)
-        return sample_targets(self.geodesic, self.c.rod_length)
+        pts = sample_targets(self.geodesic, self.c.rod_length)
+        self.n_turns = len(pts)  # targets on G itself; an exit follows
+        m = int(round(p.exit / self.c.rod_length))
+        if m > 0 and len(pts) >= 2:
+            # The tail leaves the last turn straight on along G's last tangent,
+            # square to T (not along T, into what T leads to).
+            t = pts[-1] - pts[-2]
+            if p.exit_square:
+                t = t - float(t @ self.geodesic.x_hat) * self.geodesic.x_hat
+            t /= max(float(np.linalg.norm(t)), 1e-12)
+            pts = np.vstack([pts, pts[-1] + np.outer(np.arange(1, m + 1) * self.c.rod_length, t)])
+        return pts
 
     def _particle(self, k: int) -> int:
         return self.c.start + self.i0 + self.params.direction * k
@@ -182,12 +204,13 @@ class Winding(Maneuver):
         x = w.positions()[idx]
         self.tick_in_particle += 1
         if np.linalg.norm(x - target) <= p.tolerance * self.c.rod_length and dist <= step:
-            if self.k + 1 < self.n:
+            if self.k + 1 < self.n and not (p.pinch and self.k == 0):
                 w.control.release([idx])  # only the current particle is held; the last one stays held
             self.k += 1
             self.tick_in_particle = 0
+            last = self._particle(min(self.k, self.n_turns) - 1)  # the turns, not the exit
             w.windings[(p.active, p.target)]["particles"] = np.arange(
-                min(self._particle(0), self._particle(self.k - 1)), max(self._particle(0), self._particle(self.k - 1)) + 1)
+                min(self._particle(0), last), max(self._particle(0), last) + 1)
             if self.k < self.n:
                 nxt = self._particle(self.k)
                 self.pos = w.positions()[nxt].astype(np.float64)
