@@ -406,8 +406,7 @@ class Tightening(Maneuver):
             if p.force is None:
                 w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
             else:
-                w.control.pull(idx, np.repeat((p.force / len(idx)) * d[None], len(idx), axis=0),
-                               p.force / p.speed / len(idx))
+                self._pull(idx, d)
         self.pulled = 0.0
         self.tight = False
         self.still = 0  # frames in a row that every pulled end has been still (force mode)
@@ -444,7 +443,13 @@ class Tightening(Maneuver):
         for idx, _, _ in self.ends:
             self.world.control.drive(idx, x[idx])
 
-    def _update_pulling(self, x: np.ndarray, strain: float, overlap: float) -> Status:
+    def _pull(self, idx: np.ndarray, d: np.ndarray) -> None:
+        """Pull particles ``idx`` along unit ``d`` with ``force`` in all, at most at ``speed``."""
+        p = self.params
+        self.world.control.pull(idx, np.repeat((p.force / len(idx)) * d[None], len(idx), axis=0),
+                                p.force / p.speed / len(idx))
+
+    def _update_pulling(self, x: np.ndarray) -> Status:
         """Force mode: watch the ends until they stop, then hold them."""
         p, w = self.params, self.world
         now = [x[idx].mean(axis=0) for idx, _, _ in self.ends]
@@ -453,9 +458,7 @@ class Tightening(Maneuver):
         self.pulled = max(float(np.linalg.norm(a - pos)) for a, (_, pos, _) in zip(now, self.ends))
         for q, a, (idx, _, _) in zip(p.pulls, now, self.ends):
             if q.toward is not None:  # the pull turns to keep pointing at its point
-                d = _unit(np.asarray(q.toward, float) - a, _UP)
-                w.control.pull(idx, np.repeat((p.force / len(idx)) * d[None], len(idx), axis=0),
-                               p.force / p.speed / len(idx))
+                self._pull(idx, _unit(np.asarray(q.toward, float) - a, _UP))
         self.still = self.still + 1 if speed < p.settle_speed else 0
         self.progress = min(self.pulled / p.distance, 1.0)
         # The force bounds the tension: the knot is as tight as this pull makes it once the ends stop.
@@ -474,7 +477,7 @@ class Tightening(Maneuver):
         strain, overlap = self._tension(x)
         self.last = (strain, overlap)
         if p.force is not None:
-            return self._update_pulling(x, strain, overlap)
+            return self._update_pulling(x)
         step = p.speed / w.fps
         if strain > p.max_strain or overlap > p.max_overlap:
             # Tight: give back ``backoff`` and hold the ends there, so that a

@@ -161,8 +161,8 @@ class Winding(Maneuver):
         self.n_turns = len(pts)  # targets on G itself; an exit follows
         m = int(round(p.exit / self.c.rod_length))
         if m > 0 and len(pts) >= 2:
-            # The tail leaves the last turn straight on along G's last tangent,
-            # square to T (not along T, into what T leads to).
+            # The tail leaves the last turn straight on along G's last tangent
+            # (with exit_square: less its part along T).
             t = pts[-1] - pts[-2]
             if p.exit_square:
                 t = t - float(t @ self.geodesic.x_hat) * self.geodesic.x_hat
