@@ -1,5 +1,6 @@
 """Shared test set-up: one Taichi runtime (CPU) per test process."""
 
+import os
 import pathlib
 import sys
 
@@ -8,6 +9,13 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+# Each test process keeps its own compiled-kernel cache: two processes
+# sharing one contend for its lock, and the loser skips writing its kernels.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+if _WORKER:
+    os.environ.setdefault("TI_OFFLINE_CACHE_FILE_PATH",
+                          str(pathlib.Path.home() / ".cache" / "taichi" / f"ticache_{_WORKER}"))
 
 from sandbox import runtime  # noqa: E402
 
