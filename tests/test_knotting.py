@@ -359,6 +359,12 @@ def test_crossing_contact_offset_pinches_each_strand_out_of_the_contact():
     assert not w0.control.is_driven([e + 5 for e in exits]).any()  # without an offset nothing is pinched
 
 
+def test_contact_offset_without_a_contact_bottom_is_a_level_error():
+    with pytest.raises(LevelError) as err:
+        load_level_from_string(TWO_ROPES.replace("sign: SIGN,", "sign: 1, contact_offset: 0.05,"))
+    assert "contact_offset moves a 'contact' bottom" in str(err.value)
+
+
 def test_crossing_above_a_contact_fails_when_the_strands_do_not_touch():
     w = _world(TWO_ROPES.replace("sign: SIGN,", "sign: 1, active_base: contact, target_base: contact,"))
     for _ in range(5):

@@ -170,6 +170,13 @@ class CrossingParams(Params):
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.5  # m/s of the tips
     tolerance: Annotated[float, pydantic.Field(gt=0)] = 0.005  # m
 
+    @pydantic.model_validator(mode="after")
+    def _offset_needs_contact(self):
+        if self.contact_offset > 0 and "contact" not in (self.active_base, self.target_base):
+            raise ValueError("contact_offset moves a 'contact' bottom: set active_base or target_base "
+                             "to 'contact', or leave contact_offset at 0")
+        return self
+
 
 @register
 class Crossing(Maneuver):
