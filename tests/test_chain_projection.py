@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from sandbox.solvers.rope_chain import SLACK
 from tests.levelkit import world_from_text
 
 ROPES = """
@@ -32,7 +33,9 @@ def chain_step_reference(x, w, groups, touching, normal):
     for a particle in contact, w_i I otherwise; the tridiagonal system
     A_jj = n_j.W_a n_j + n_j.W_b n_j + 1e-6 (w_a + w_b), A_{j,j-1} = -n_{j-1}.W_a n_j
     is solved for lambda, and x_a -= lambda_j W_a n_j, x_b += lambda_j W_b n_j.
-    Rows with both ends immovable along the rod are inert (lambda = 0).
+    Rows with both ends immovable along the rod are inert (lambda = 0). A stretch
+    between two held particles at least (1 - SLACK) of its rest length apart
+    is laid straight with its rods stretched evenly, and its rows are still.
     """
     x = x.astype(np.float64).copy()
 
@@ -46,10 +49,26 @@ def chain_step_reference(x, w, groups, touching, normal):
         y = x.copy()  # a group's chains share no particle: all read the same positions
         for chain, rr in group:
             k = len(chain) - 1
+            # A stretch between two held particles at (1 - SLACK) of its reach
+            # or farther is laid straight, rods stretched evenly, and its rows
+            # take no part in the step (rope_chain._overreach).
+            still = np.zeros(k, bool)
+            seg, reach = None, 0.0
+            for j in range(k):
+                if w[chain[j]] == 0.0:
+                    seg, reach = j, 0.0
+                reach += rr[j]
+                if seg is not None and w[chain[j + 1]] == 0.0:
+                    p, line = x[chain[seg]], x[chain[j + 1]] - x[chain[seg]]
+                    if np.linalg.norm(line) > (1.0 - SLACK) * reach:
+                        along = np.cumsum(rr[seg:j])
+                        x[chain[seg + 1:j + 1]] = p + np.outer(along / reach, line)
+                        y[chain[seg + 1:j + 1]] = x[chain[seg + 1:j + 1]]
+                        still[seg:j + 1] = True
             d = x[chain[1:]] - x[chain[:-1]]
             length = np.linalg.norm(d, axis=1)
             n = d / length[:, None]
-            res = rr - length
+            res = np.where(still, 0.0, rr - length)
             A = np.zeros((k, k))
             b = res.copy()
             for j in range(k):
@@ -73,14 +92,22 @@ def chain_step_reference(x, w, groups, touching, normal):
     return x
 
 
-@pytest.mark.parametrize("with_contacts", [False, True])
-def test_chain_kernel_matches_the_numpy_reference(with_contacts):
+@pytest.mark.parametrize("with_contacts,overreach", [(False, False), (True, False), (False, True)])
+def test_chain_kernel_matches_the_numpy_reference(with_contacts, overreach):
     w = world_from_text(ROPES)
     solver = w.solver
     chains = solver.inext
     rng = np.random.default_rng(3)
     x0 = w.positions().astype(np.float64)
     x = x0 + rng.normal(scale=0.004, size=x0.shape)  # every rod off its length by up to ~1 cm
+    c0, c1 = w.model.data.ropes[2].start, w.model.data.ropes[2].end
+    if overreach:
+        # Rope C pulled straight and its end pin 3 % beyond the reach of its
+        # rods: the step cannot meet Eq. 2 and shares the excess out.
+        reach = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(x0[c0:c1], axis=0), axis=1))])
+        u = np.array([0.6, 0.64, 0.48])
+        x[c0:c1] = x[c0] + np.outer(reach, u) + rng.normal(scale=0.001, size=(c1 - c0, 3))
+        x[c1 - 1] = x[c0] + 1.03 * reach[-1] * u
     w.state.x.from_numpy(x.astype(np.float32))
     # The solver's per-substep inverse masses: the model's, zero where held (the pins).
     driven = w.control.is_driven(np.arange(len(x))).astype(bool)
@@ -110,4 +137,7 @@ def test_chain_kernel_matches_the_numpy_reference(with_contacts):
     pinned = inv_mass == 0
     assert pinned.sum() == 3
     np.testing.assert_array_equal(got[pinned], x[pinned].astype(np.float32).astype(np.float64))
+    if overreach:  # every rod of rope C stretched by the same 3 %
+        rods = np.linalg.norm(np.diff(got[c0:c1], axis=0), axis=1) / rest[lo[2]:hi[2]]
+        np.testing.assert_allclose(rods, 1.03, atol=1e-5)
 

@@ -274,6 +274,50 @@ def test_vertical_rope_pinned_at_both_ends_is_stable():
     np.testing.assert_allclose(sim.rope_positions("rod"), x0, atol=1e-3)
 
 
+REACH_LEVEL = """
+version: 1
+name: reach
+scene:
+  gravity: [0, -9.81, 0]
+  ground: {{height: 0.0}}
+  ropes:
+    - {{name: cord, points: [[0, 1, 0], [0.5, 1, 0]], rod_length: 0.02, radius: 0.004, pins: [start]}}
+sim: {{fps: 60, substeps: 20, iterations: 3, max_retries: 0, frames: 200}}
+fsm:
+  - {{run: MoveTo, with: {{body: cord, sites: [end], to: [{far}, 1.0, 0.2], speed: 1.5, tolerance: 0.002}}}}
+  - {{run: Wait, with: {{seconds: 0.3}}}}
+  - {{run: MoveTo, with: {{body: cord, sites: [end], to: [0.3, 1.0, 0.1], speed: 1.0, tolerance: 0.002}}}}
+  - {{run: Wait, with: {{seconds: 0.5}}}}
+"""
+
+
+def test_rope_driven_beyond_its_reach_stretches_evenly_and_recovers():
+    """A pinned rope whose other end is driven 60 % beyond its length stretches evenly along the straight line, then comes back to its length."""
+    far = 0.78
+    sim = _sandbox(REACH_LEVEL.format(far=far))
+    length = 0.5
+    span = math.hypot(far, 0.2)
+    held = {"strain": 0.0}
+    while sim.fsm_state.startswith("0") or sim.fsm_state.startswith("1"):
+        row = sim.step()  # max_retries 0: a blow-up raises at once
+        x = sim.rope_positions("cord")
+        if sim.fsm_state.startswith("1"):  # held at full stretch
+            rods = np.linalg.norm(np.diff(x, axis=0), axis=1)
+            # Every rod carries the same share of the excess ...
+            np.testing.assert_allclose(rods / 0.02 - 1.0, span / length - 1.0, atol=1e-3)
+            # ... and the rope lies on the straight line from pin to hand.
+            d = x - x[0]
+            u = (x[-1] - x[0]) / np.linalg.norm(x[-1] - x[0])
+            off = np.linalg.norm(d - np.outer(d @ u, u), axis=1)
+            assert off.max() < 2e-3
+            held["strain"] = row["strain"]["cord"]
+    assert held["strain"] > 0.5
+    while sim.fsm_state != "success":
+        row = sim.step()
+    assert row["strain"]["cord"] < 0.01  # back within reach: the rods have their length again
+    assert np.isfinite(sim.rope_positions("cord")).all()
+
+
 # ------------------------------------------------------------------ stability
 def test_explosion_rolls_back_and_raises(monkeypatch):
     """A frame that keeps blowing up is retried with doubled substeps, then raises SimulationUnstable and keeps the last good state."""

@@ -30,6 +30,10 @@ other.
 import numpy as np
 import taichi as ti
 
+# A stretch of chain held at both ends closer than this fraction to its full
+# reach is laid straight (see ChainProjection._overreach).
+SLACK = 1e-4
+
 
 def build_chains(data) -> list[list[np.ndarray]]:
     """Chain groups of a model: [ropes + cloth rows, cloth columns].
@@ -140,11 +144,49 @@ class ChainProjection:
             self.res[j] = -(length - self.rest[j])
 
     @ti.func
+    def _overreach(self, lo, hi):
+        """Lay straight the stretches between two held particles that are farther apart than their rods reach.
+
+        Between two consecutive held particles (w = 0) a stretch of chain of
+        total rest length L can only span a distance D <= L. When D > (1 -
+        SLACK) L the linearised step is all but singular (the rods are all but
+        collinear and their lengths along the line must add up to D): it would
+        dump the excess on one rod or throw particles sideways. Such a stretch
+        is laid on the straight line instead, each rod stretched by D / L, and
+        its rows take no part in the step (zero residual; held particles at
+        both ends decouple them from the rest of the chain). O(k) for a chain
+        of k links.
+        """
+        x = ti.static(self.st.x)
+        seg = -1  # first link after the last held particle; -1 before the first one
+        reach = 0.0
+        for j in range(lo, hi):
+            a = self.link_a[j]
+            b = self.link_b[j]
+            if self.w[a] == 0.0:
+                seg = j
+                reach = 0.0
+            reach += self.rest[j]
+            if seg >= 0 and self.w[b] == 0.0:
+                p = x[self.link_a[seg]]
+                line = x[b] - p
+                span = line.norm()
+                if span > (1.0 - ti.static(SLACK)) * reach:
+                    along = 0.0
+                    for k in range(seg, j + 1):
+                        along += self.rest[k]
+                        if k < j:
+                            x[self.link_b[k]] = p + (along / reach) * line
+                        self.nrm[k] = line / span
+                        self.res[k] = 0.0
+
+    @ti.func
     def _chain(self, c):
         """Solve one linearised chain: forward-eliminate, back-substitute, scatter."""
         x = ti.static(self.st.x)
         lo = self.lo[c]
         hi = self.hi[c]
+        self._overreach(lo, hi)
         for j in range(lo, hi):
             a = self.link_a[j]
             b = self.link_b[j]
