@@ -1,5 +1,7 @@
 """Knot identification of ropes: diagrams, invariants, closure far away, two-rope knots, linking."""
 
+import pathlib
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -290,6 +292,29 @@ def test_two_ropes_joined_at_standing_ends(kw, name):
     assert identify_two_ropes(a[::-1], b[::-1], join="free").name == name
     with pytest.raises(ValueError, match="standing"):
         identify_two_ropes(a, b, join="middle")
+
+
+def test_standing_ends_side_by_side_are_joined_straight():
+    """Two simulated ropes (a half knot tied against their standing ends, held 2 cm apart and
+    pointing at each other): extending those ends outward crosses them and read ``unknown``;
+    joined straight, as the cloth joins them, they read the half knot, from any view."""
+    data = np.load(pathlib.Path(__file__).parent / "data" / "two_ropes_side_by_side.npz")
+    for a, b in zip(data["a"].astype(np.float64), data["b"].astype(np.float64)):
+        assert np.linalg.norm(a[0] - b[0]) < 0.025
+        for k, rot in enumerate(rotations(3)):
+            assert identify_two_ropes(a @ rot.T, b @ rot.T, join="standing", seed=k).name == "trefoil_left"
+
+
+def test_standing_ends_with_a_rope_between_them_are_joined_far_away():
+    """A straight join is used only when nothing passes between the ends: here b comes back through the gap."""
+    from sandbox.geometry.knots import _clear_between
+
+    a = np.linspace([0.0, 0.0, 0.0], [-1.0, 0.0, 0.0], 50)
+    b = np.linspace([0.1, 0.0, 0.0], [1.0, 0.0, 0.0], 50)
+    assert _clear_between(a, b)
+    back = np.vstack([b, np.linspace([1.0, 1.0, 0.1], [0.05, 1.0, 0.1], 50), np.linspace([0.05, 0.9, 0.02], [0.05, -1.0, 0.02], 50)])
+    assert not _clear_between(a, back)
+    assert identify_two_ropes(a, back).name == "unknot"
 
 
 def test_linking_number_of_two_open_ropes():

@@ -286,10 +286,38 @@ def identify_knot(
     return identify_closed(curve, seed=seed, projections=projections)
 
 
+def _segment_distances(p: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> np.ndarray:
+    """Distance of each point of ``p`` to the segment s0-s1."""
+    d = s1 - s0
+    t = np.clip((p - s0) @ d / max(float(d @ d), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(p - (s0 + t[:, None] * d), axis=1)
+
+
+def _clear_between(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether the straight segment between a[0] and b[0] keeps clear of both ropes.
+
+    Clear: every particle farther than the gap g = |a[0] - b[0]| along its
+    rope from its joined end stays more than g / 2 from the segment. Then
+    nothing passes between the two ends, and joining them straight is what
+    a cloth or an object holding them side by side does. Extending them
+    outward instead would cross each other when they point at each other.
+    """
+    gap = float(np.linalg.norm(b[0] - a[0]))
+    if gap == 0.0:
+        return True
+    for p in (a, b):
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+        far = p[arc > gap]
+        if len(far) and _segment_distances(far, a[0], b[0]).min() <= 0.5 * gap:
+            return False
+    return True
+
+
 def _joined_curve(
     a: np.ndarray, b: np.ndarray, join: str, mode: str, radius_factor: float
 ) -> np.ndarray:
-    """One closed curve: a's and b's joined ends meet on one sphere, the others on a larger one."""
+    """One closed curve: a's and b's joined ends joined straight if clear (``_clear_between``), else
+    meeting on one sphere; the other ends meet on a larger one."""
     if join not in JOIN_MODES:
         raise ValueError(f"join must be one of {JOIN_MODES}, got {join!r}")
     if mode not in CLOSURE_MODES:
@@ -305,8 +333,12 @@ def _joined_curve(
         d = _leave_direction(p, end, centre, mode, 2)
         return _exit_point(p[end], d, centre, radius)
 
-    ja, jb = leave(a, 0, r1), leave(b, 0, r1)
     fa, fb = leave(a, -1, r2), leave(b, -1, r2)
+    if _clear_between(a, b):
+        # The joined ends side by side with nothing in between: joined
+        # straight, as the cloth or object that holds them joins them.
+        return np.vstack([a[::-1], b, [fb], _great_arc(fb, fa, centre, 16), [fa]])
+    ja, jb = leave(a, 0, r1), leave(b, 0, r1)
     # a backwards from its free end to its joined end, across to b, b forwards, back to a.
     return np.vstack(
         [
@@ -335,9 +367,10 @@ def identify_two_ropes(
     """Identify the knot that ties two ropes together (e.g. a furoshiki's corners).
 
     The ropes' ``join`` ends (``"standing"``: the first particles, as the cloth
-    or object joins them; ``"free"``: the last ones) are extended outward and
-    connected far away; the other two ends are closed on a larger sphere, so
-    that the two far paths cannot meet. Closed this way, a square (reef) knot
+    or object joins them; ``"free"``: the last ones) are joined by a straight
+    segment when they sit side by side with nothing passing between them, and
+    otherwise extended outward and connected far away; the other two ends are
+    closed on a larger sphere, so that the two far paths cannot meet. Closed this way, a square (reef) knot
     tied between two ropes is the sum of opposite trefoils and reads
     ``square``; a granny reads ``granny_left`` or ``granny_right``.
 
