@@ -7,6 +7,7 @@ architecture and raises for a different one.
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 import taichi as ti
@@ -14,6 +15,51 @@ import taichi as ti
 ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
 
 _state: dict[str, str | None] = {"arch": None, "requested": None}
+
+
+_deferred: list | None = None
+
+
+def defer(fn, *args) -> None:
+    """Call ``fn(*args)`` now, or at the end of the enclosing ``batched`` block."""
+    if _deferred is None:
+        fn(*args)
+    else:
+        _deferred.append((fn, args))
+
+
+@contextlib.contextmanager
+def batched():
+    """Allocate every field first and upload data last.
+
+    Taichi gathers the fields declared since its last kernel launch or field
+    access into one SNode tree, and a process can hold only a few hundred
+    trees, never freed. Uploads (``from_numpy``, loading kernels) passed to
+    ``defer`` inside this block run when it ends, so the fields of a whole
+    World land in one tree instead of one per upload.
+
+    Raises:
+        RuntimeError: something materialised fields inside the block (a
+            kernel launch or a field read not passed to ``defer``): it would
+            have seen fields whose data had not been uploaded yet.
+    """
+    global _deferred
+    if _deferred is not None:  # nested: the outer block uploads
+        yield
+        return
+    prog = ti.lang.impl.get_runtime().prog
+    trees = prog.get_snode_tree_size()
+    _deferred = []
+    try:
+        yield
+        pending = _deferred
+    finally:
+        _deferred = None
+    if prog.get_snode_tree_size() != trees:
+        raise RuntimeError("fields were materialised inside runtime.batched() before their data was uploaded: "
+                           "pass every upload and loading kernel of the block to runtime.defer")
+    for fn, args in pending:
+        fn(*args)
 
 
 class RuntimeConfigError(RuntimeError):

@@ -66,16 +66,18 @@ class World:
         self.data = builder.finalize_data()
         self.ropes: dict[str, RopeRange] = {r.name: r for r in self.data.ropes}
         self.cloths: dict[str, ClothRange] = {c.name: c for c in self.data.cloths}
-        self.objects = self._build_objects(scene.objects)
-        self.object_specs = {o.name: o for o in scene.objects}
-        self.model = Model(self.data)
-        self.state = self.model.state()
-        self.control = self.model.control()
-        ground = None if scene.ground is None else (float(scene.ground.height), float(scene.ground.friction))
-        self.solver = XPBDSolver(
-            self.model, self.state, self.control, gravity=scene.gravity, ground=ground,
-            objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
-        )
+        # Every field of the world first, their data after (one SNode tree per world, see runtime.batched).
+        with runtime.batched():
+            self.objects = self._build_objects(scene.objects)
+            self.object_specs = {o.name: o for o in scene.objects}
+            self.model = Model(self.data)
+            self.state = self.model.state()
+            self.control = self.model.control()
+            ground = None if scene.ground is None else (float(scene.ground.height), float(scene.ground.friction))
+            self.solver = XPBDSolver(
+                self.model, self.state, self.control, gravity=scene.gravity, ground=ground,
+                objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
+            )
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
         # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).
         self.rope_motions = []

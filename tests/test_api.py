@@ -284,3 +284,35 @@ def test_positions_field_is_a_live_view(scenario):
     np.testing.assert_array_equal(sim.rope_positions("cord")[4], [5.0, 6.0, 7.0])
     with pytest.raises(KeyError):
         sim.body_range("nothing")
+
+
+# ------------------------------------------------------------------ field trees
+def _trees() -> int:
+    return ti.lang.impl.get_runtime().prog.get_snode_tree_size()
+
+
+@pytest.mark.parametrize("level", ["rope_wind.yaml", "wrap_bottle.yaml"])
+def test_a_world_takes_one_field_tree(level):
+    """Taichi never frees a field tree and a process holds a few hundred: a World (ropes; or cloth, a mesh object and its
+    distance grid) allocates all its fields into one, so a host can load levels again and again."""
+    root = pathlib.Path(__file__).resolve().parents[1] / "levels"
+    sim = Sandbox.from_level(root / level, arch="cpu")
+    sim.step()
+    before = _trees()
+    sim = Sandbox.from_level(root / level, arch="cpu")
+    for _ in range(2):
+        sim.step()
+    assert _trees() - before == 1
+
+
+def test_batched_uploads_run_at_the_end_and_catch_early_reads():
+    from sandbox import runtime
+
+    with runtime.batched():
+        f = ti.field(ti.f32, shape=4)
+        runtime.defer(f.from_numpy, np.arange(4, dtype=np.float32))
+    np.testing.assert_array_equal(f.to_numpy(), np.arange(4))
+    with pytest.raises(RuntimeError, match="runtime.defer"):
+        with runtime.batched():
+            g = ti.field(ti.f32, shape=4)
+            g.from_numpy(np.ones(4, np.float32))  # not deferred: materialises inside the block

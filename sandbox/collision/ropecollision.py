@@ -12,6 +12,8 @@ apart: closer ones share a particle or overlap at rest (thick ropes).
 import numpy as np
 import taichi as ti
 
+from sandbox import runtime
+
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
 from sandbox.constraints.capsule import segment_closest
 
@@ -48,7 +50,7 @@ class RopeCollision:
         # closer in index than 1 + 2 radius / rod would touch at rest.
         skip = np.maximum(2, np.ceil(1.0 + 2.0 * rad / rod - 1e-9)).astype(np.int32)
         self.skip = ti.field(ti.i32, shape=len(skip))
-        self.skip.from_numpy(skip)
+        runtime.defer(self.skip.from_numpy, skip)
         self.mid = ti.Vector.field(3, ti.f32, shape=s)
         self.d0 = ti.Vector.field(3, ti.f32, shape=s)
         self.d1 = ti.Vector.field(3, ti.f32, shape=s)
@@ -61,8 +63,8 @@ class RopeCollision:
         seg_b[d.segments[:, 1]] = np.arange(s)
         self.seg_a = ti.field(ti.i32, shape=model.n)
         self.seg_b = ti.field(ti.i32, shape=model.n)
-        self.seg_a.from_numpy(seg_a)
-        self.seg_b.from_numpy(seg_b)
+        runtime.defer(self.seg_a.from_numpy, seg_a)
+        runtime.defer(self.seg_b.from_numpy, seg_b)
         self.rope_particles = np.flatnonzero((seg_a >= 0) | (seg_b >= 0)).astype(np.int32)
 
     @ti.func

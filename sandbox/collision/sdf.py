@@ -290,13 +290,13 @@ class ObjectSet:
 
         mu = np.array([i.friction for i in self.instances] + [0.0] * (nf - self.n))
         f32 = [a.astype(np.float32) for a in (par, center, bound_r, mu, g_org, g_h, grid_values)]
-        self._load_static(self._kind, f32[0], f32[1], f32[2], f32[3], g_off, g_res, *f32[4:])
+        runtime.defer(self._load_static, self._kind, f32[0], f32[1], f32[2], f32[3], g_off, g_res, *f32[4:])
 
         self._pos, self._vel, self._omega = np.zeros((nf, 3)), np.zeros((nf, 3)), np.zeros((nf, 3))
         self._rot, self._vel_mat = np.tile(np.eye(3), (nf, 1, 1)), np.zeros((nf, 3, 3))
         for k, inst in enumerate(self.instances):
             self._pos[k], self._rot[k] = self._check_pose(inst.position, inst.rotation)
-        self._push_pose()
+        runtime.defer(self._push_pose)
 
     # --- build ------------------------------------------------------------------
 

@@ -9,6 +9,8 @@ backend.
 import numpy as np
 import taichi as ti
 
+from sandbox import runtime
+
 from sandbox.model.builder import ModelData
 
 
@@ -44,12 +46,12 @@ class Model:
         self.damping = ti.field(ti.f32, shape=n)
         self.cloth_id = ti.field(ti.i32, shape=n)
         self.grid_ij = ti.Vector.field(2, ti.i32, shape=n)
-        self.inv_mass.from_numpy(data.inv_mass.astype(np.float32))
-        self.radius.from_numpy(data.radius.astype(np.float32))
-        self.friction.from_numpy(data.friction.astype(np.float32))
-        self.damping.from_numpy(data.damping.astype(np.float32))
-        self.cloth_id.from_numpy(data.cloth_id.astype(np.int32))
-        self.grid_ij.from_numpy(data.grid_ij.astype(np.int32))
+        runtime.defer(self.inv_mass.from_numpy, data.inv_mass.astype(np.float32))
+        runtime.defer(self.radius.from_numpy, data.radius.astype(np.float32))
+        runtime.defer(self.friction.from_numpy, data.friction.astype(np.float32))
+        runtime.defer(self.damping.from_numpy, data.damping.astype(np.float32))
+        runtime.defer(self.cloth_id.from_numpy, data.cloth_id.astype(np.int32))
+        runtime.defer(self.grid_ij.from_numpy, data.grid_ij.astype(np.int32))
         mm = max(m, 1)
         self.edge = ti.Vector.field(2, ti.i32, shape=mm)
         self.rest = ti.field(ti.f32, shape=mm)
@@ -57,24 +59,24 @@ class Model:
         self.kind = ti.field(ti.i32, shape=mm)
         self.group = ti.field(ti.i32, shape=mm)
         if m:
-            self.edge.from_numpy(data.edges.astype(np.int32))
-            self.rest.from_numpy(data.rest.astype(np.float32))
-            self.compliance.from_numpy(data.compliance.astype(np.float32))
-            self.kind.from_numpy(data.kind.astype(np.int32))
-            self.group.from_numpy(data.group.astype(np.int32))
+            runtime.defer(self.edge.from_numpy, data.edges.astype(np.int32))
+            runtime.defer(self.rest.from_numpy, data.rest.astype(np.float32))
+            runtime.defer(self.compliance.from_numpy, data.compliance.astype(np.float32))
+            runtime.defer(self.kind.from_numpy, data.kind.astype(np.int32))
+            runtime.defer(self.group.from_numpy, data.group.astype(np.int32))
         ss = max(s, 1)
         self.segment = ti.Vector.field(2, ti.i32, shape=ss)
         self.segment_rope = ti.field(ti.i32, shape=ss)
         if s:
-            self.segment.from_numpy(data.segments.astype(np.int32))
-            self.segment_rope.from_numpy(data.segment_rope.astype(np.int32))
+            runtime.defer(self.segment.from_numpy, data.segments.astype(np.int32))
+            runtime.defer(self.segment_rope.from_numpy, data.segment_rope.astype(np.int32))
         self.max_thickness = max([c.thickness for c in data.cloths], default=0.0)
         self.self_collision = any(c.self_collision for c in data.cloths)
 
     def state(self) -> "State":
         """A new State at the rest configuration, at rest."""
         st = State(self.n, self.m)
-        st.x.from_numpy(self.x0)
+        runtime.defer(st.x.from_numpy, self.x0)
         return st
 
     def control(self) -> "Control":

@@ -30,6 +30,8 @@ other.
 import numpy as np
 import taichi as ti
 
+from sandbox import runtime
+
 # A stretch of chain held at both ends closer than this fraction to its full
 # reach is laid straight (see ChainProjection._overreach).
 SLACK = 1e-4
@@ -96,13 +98,13 @@ class ChainProjection:
         self.link_a = ti.field(ti.i32, shape=n_links)
         self.link_b = ti.field(ti.i32, shape=n_links)
         self.rest = ti.field(ti.f32, shape=n_links)
-        self.link_a.from_numpy(a)
-        self.link_b.from_numpy(b)
-        self.rest.from_numpy(np.linalg.norm(x0[b] - x0[a], axis=1).astype(np.float32))
+        runtime.defer(self.link_a.from_numpy, a)
+        runtime.defer(self.link_b.from_numpy, b)
+        runtime.defer(self.rest.from_numpy, np.linalg.norm(x0[b] - x0[a], axis=1).astype(np.float32))
         self.lo = ti.field(ti.i32, shape=len(lo))
         self.hi = ti.field(ti.i32, shape=len(hi))
-        self.lo.from_numpy(np.asarray(lo, np.int32))
-        self.hi.from_numpy(np.asarray(hi, np.int32))
+        runtime.defer(self.lo.from_numpy, np.asarray(lo, np.int32))
+        runtime.defer(self.hi.from_numpy, np.asarray(hi, np.int32))
         self.nrm = ti.Vector.field(3, ti.f32, shape=n_links)
         self.peeled = ti.field(ti.i32, shape=model.n) if self.has_contacts else None
         self.cloth_start = min((c.start for c in model.data.cloths), default=model.n)

@@ -28,6 +28,7 @@ import time
 import numpy as np
 import taichi as ti
 
+from sandbox import runtime
 from sandbox.collision.contacts import friction_velocity, plane_push
 from sandbox.collision.ropecollision import RopeCollision
 from sandbox.collision.selfcollision import ClothSelfCollision
@@ -90,7 +91,7 @@ class XPBDSolver:
         # Rods of ropes must keep their length both ways; cloth may buckle
         # (compressed edges in folds), so only its stretch counts as strain.
         self.stretch_only = ti.field(ti.i32, shape=max(model.n_bodies, 1))
-        self.stretch_only.from_numpy(np.array(
+        runtime.defer(self.stretch_only.from_numpy, np.array(
             [0] * len(model.data.ropes) + [1] * len(model.data.cloths) + [0] * (model.n_bodies == 0), np.int32))
         # Contact normals are kept per substep wherever something can touch a
         # particle (ground, objects, other rope segments): the chain solve
