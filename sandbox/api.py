@@ -55,6 +55,16 @@ class Sandbox:
         level = load_level(path, overrides)
         return cls(level, base_dir=path.parent, arch=arch, **kwargs)
 
+    def close(self) -> None:
+        """Free the level's fields (Taichi holds at most 512 field trees per process; each level takes one)."""
+        self.world.close()
+
+    def __enter__(self) -> "Sandbox":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     # ------------------------------------------------------------ stepping
     def step(self) -> dict:
         """Advance exactly one frame (1 / fps seconds); returns its metrics row."""

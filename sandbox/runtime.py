@@ -28,15 +28,28 @@ def defer(fn, *args) -> None:
         _deferred.append((fn, args))
 
 
+class FieldTree:
+    """The SNode tree that a ``batched`` block allocated (``tree`` is None if it declared no field)."""
+
+    def __init__(self) -> None:
+        self.tree = None
+
+    def destroy(self) -> None:
+        """Free the tree's memory and its slot; its fields must not be used again."""
+        if self.tree is not None:
+            self.tree.destroy()
+            self.tree = None
+
+
 @contextlib.contextmanager
 def batched():
-    """Allocate every field first and upload data last.
+    """Allocate every field first, upload data last, into one SNode tree of its own.
 
     Taichi gathers the fields declared since its last kernel launch or field
-    access into one SNode tree, and a process can hold only a few hundred
-    trees, never freed. Uploads (``from_numpy``, loading kernels) passed to
-    ``defer`` inside this block run when it ends, so the fields of a whole
-    World land in one tree instead of one per upload.
+    access into one SNode tree, and a process can hold at most 512 trees.
+    Uploads (``from_numpy``, loading kernels) passed to ``defer`` inside this
+    block run when it ends, after the block's fields have been finalised as
+    one tree; the yielded ``FieldTree`` can destroy it, which frees its slot.
 
     Raises:
         RuntimeError: something materialised fields inside the block (a
@@ -44,20 +57,31 @@ def batched():
             have seen fields whose data had not been uploaded yet.
     """
     global _deferred
-    if _deferred is not None:  # nested: the outer block uploads
-        yield
+    holder = FieldTree()
+    if _deferred is not None:  # nested: the outer block finalises and uploads
+        yield holder
         return
-    prog = ti.lang.impl.get_runtime().prog
-    trees = prog.get_snode_tree_size()
+    from taichi._snode.fields_builder import FieldsBuilder
+    from taichi.lang import impl
+
+    rt = impl.get_runtime()
+    trees = rt.prog.get_snode_tree_size()
     _deferred = []
     try:
-        yield
+        yield holder
         pending = _deferred
     finally:
         _deferred = None
-    if prog.get_snode_tree_size() != trees:
+    if rt.prog.get_snode_tree_size() != trees:
         raise RuntimeError("fields were materialised inside runtime.batched() before their data was uploaded: "
                            "pass every upload and loading kernel of the block to runtime.defer")
+    fb = impl._root_fb
+    if not fb.finalized and not fb.empty:
+        # Finalised here rather than at the next kernel launch, so that the
+        # tree's handle is kept (Taichi's own materialisation drops it).
+        holder.tree = fb.finalize(raise_warning=False)
+        impl._root_fb = FieldsBuilder()
+        rt.materialize()
     for fn, args in pending:
         fn(*args)
 

@@ -67,7 +67,7 @@ class World:
         self.ropes: dict[str, RopeRange] = {r.name: r for r in self.data.ropes}
         self.cloths: dict[str, ClothRange] = {c.name: c for c in self.data.cloths}
         # Every field of the world first, their data after (one SNode tree per world, see runtime.batched).
-        with runtime.batched():
+        with runtime.batched() as self._fields:
             self.objects = self._build_objects(scene.objects)
             self.object_specs = {o.name: o for o in scene.objects}
             self.model = Model(self.data)
@@ -259,12 +259,24 @@ class World:
             f"{self.max_retries} retries (up to {substeps // 2} substeps); last good state kept"
         )
 
+    def close(self) -> None:
+        """Free this world's fields (its one field tree); it cannot step or be read afterwards."""
+        if self._fields is not None:
+            self._fields.destroy()
+            self._fields = None
+
+    @property
+    def closed(self) -> bool:
+        return self._fields is None
+
     def step(self) -> dict:
         """One frame: physics (with rollback), FSM tick, metrics. Returns the frame's metrics.
 
         A KeyboardInterrupt anywhere inside puts the state back to the start of
         the frame before it propagates, so the state always is a whole frame.
         """
+        if self.closed:
+            raise RuntimeError(f"world of level {self.level.name!r} is closed; load the level again to run it")
         snap = (self.state.save(), self.frame, self.time, self.control.snapshot(),
                 [self.objects.pose(k) for k in self.moving] if self.moving else [])
         try:

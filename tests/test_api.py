@@ -316,3 +316,19 @@ def test_batched_uploads_run_at_the_end_and_catch_early_reads():
         with runtime.batched():
             g = ti.field(ti.f32, shape=4)
             g.from_numpy(np.ones(4, np.float32))  # not deferred: materialises inside the block
+
+
+def test_closing_a_level_frees_its_field_tree():
+    """Load, run and close a level again and again: the process's count of field trees stays put."""
+    root = pathlib.Path(__file__).resolve().parents[1] / "levels"
+    with Sandbox.from_level(root / "rope_wind.yaml", arch="cpu") as sim:
+        sim.step()
+    before = _trees()
+    for _ in range(4):
+        with Sandbox.from_level(root / "rope_wind.yaml", arch="cpu") as sim:
+            sim.step()
+            x = sim.rope_positions("C")
+            assert np.isfinite(x).all() and x[:, 1].max() > 0.5
+        assert _trees() == before
+    with pytest.raises(RuntimeError, match="closed"):
+        sim.step()
