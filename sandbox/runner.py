@@ -176,6 +176,8 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
             summary["success"] = all(c["ok"] for c in summary["criteria"])
             code = EXIT_OK if summary["success"] else EXIT_CRITERIA
     write_json_atomic(out / "summary.json", summary)
+    if world is not None:
+        world.close()  # frees its field tree: a process may run many levels (tools/sweep_level.py)
     return code, summary
 
 

@@ -245,3 +245,20 @@ def test_unstable_run_exits_3(tmp_path):
         assert int(st["frame"]) == 0
         np.testing.assert_allclose(st["rope_cord"][:, 1], 0.3, atol=1e-6)      # the start state, untouched
         np.testing.assert_allclose(st["cloth_sheet"][:, 1], 0.45, atol=1e-6)
+
+
+def test_in_process_runs_give_back_their_field_trees(tmp_path):
+    """run_level closes its world once the outputs are written: many runs in one process keep the field-tree count."""
+    import taichi as ti
+
+    from sandbox import runtime
+    from sandbox.runner import RunOptions, run_level
+
+    runtime.init("cpu")
+    level = ROOT / "levels" / "rope_wind.yaml"
+    run_level(level, RunOptions(out=tmp_path / "a", frames=3, progress=False))
+    trees = ti.lang.impl.get_runtime().prog.get_snode_tree_size()
+    for k in range(3):
+        code, s = run_level(level, RunOptions(out=tmp_path / f"b{k}", frames=3, progress=False))
+        assert s["status"] == "completed" and (tmp_path / f"b{k}" / "state.npz").exists()
+    assert ti.lang.impl.get_runtime().prog.get_snode_tree_size() == trees
