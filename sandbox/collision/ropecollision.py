@@ -13,7 +13,6 @@ import numpy as np
 import taichi as ti
 
 from sandbox import runtime
-
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
 from sandbox.constraints.capsule import segment_closest
 

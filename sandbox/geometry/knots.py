@@ -370,9 +370,10 @@ def identify_two_ropes(
     or object joins them; ``"free"``: the last ones) are joined by a straight
     segment when they sit side by side with nothing passing between them, and
     otherwise extended outward and connected far away; the other two ends are
-    closed on a larger sphere, so that the two far paths cannot meet. Closed this way, a square (reef) knot
-    tied between two ropes is the sum of opposite trefoils and reads
-    ``square``; a granny reads ``granny_left`` or ``granny_right``.
+    closed on a larger sphere, so that the two far paths cannot meet. Closed
+    this way, a square (reef) knot tied between two ropes is the sum of
+    opposite trefoils and reads ``square``; a granny reads ``granny_left`` or
+    ``granny_right``.
 
     Args:
         a, b: ``(n, 3)`` and ``(m, 3)`` rope particles, m.

@@ -10,7 +10,6 @@ import numpy as np
 import taichi as ti
 
 from sandbox import runtime
-
 from sandbox.model.builder import ModelData
 
 
