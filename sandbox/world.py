@@ -32,6 +32,17 @@ class SimulationUnstable(RuntimeError):
     """The step kept producing NaN or exploding velocities after every retry."""
 
 
+class _Closed:
+    """Stands in for the fields of a closed world: any use raises."""
+
+    def __init__(self, level: str) -> None:
+        self._level = level
+
+    def __getattr__(self, name: str):
+        raise RuntimeError(f"world of level {self._level!r} is closed (its fields are freed); "
+                           "load the level again to run or read it")
+
+
 class World:
     """A running level.
 
@@ -260,10 +271,18 @@ class World:
         )
 
     def close(self) -> None:
-        """Free this world's fields (its one field tree); it cannot step or be read afterwards."""
+        """Free this world's fields (its one field tree); it cannot step or be read afterwards.
+
+        What held the fields is replaced by a stand-in that raises on use, so a
+        late read is a clear error instead of a read of freed memory.
+        """
         if self._fields is not None:
             self._fields.destroy()
             self._fields = None
+            gone = _Closed(self.level.name)
+            self.model = self.state = self.control = self.solver = gone
+            if self.objects is not None:
+                self.objects = gone
 
     @property
     def closed(self) -> bool:

@@ -332,3 +332,5 @@ def test_closing_a_level_frees_its_field_tree():
         assert _trees() == before
     with pytest.raises(RuntimeError, match="closed"):
         sim.step()
+    with pytest.raises(RuntimeError, match="closed"):
+        sim.rope_positions("C")  # a read of freed fields would crash the process
