@@ -141,3 +141,40 @@ def test_chain_kernel_matches_the_numpy_reference(with_contacts, overreach):
         rods = np.linalg.norm(np.diff(got[c0:c1], axis=0), axis=1) / rest[lo[2]:hi[2]]
         np.testing.assert_allclose(rods, 1.03, atol=1e-5)
 
+
+
+def test_resweep_solves_only_the_chains_still_off():
+    """A later sweep re-solves a chain with a rod off by more than the tolerance, as the first step would, and leaves the others bitwise alone."""
+    w = world_from_text(ROPES)
+    solver = w.solver
+    chains = solver.inext
+    rng = np.random.default_rng(5)
+    x = w.positions().astype(np.float64)  # every rod at its rest length
+    b0, b1 = w.model.data.ropes[1].start, w.model.data.ropes[1].end
+    x[b0:b1] += rng.normal(scale=0.003, size=(b1 - b0, 3))  # only rope B is off
+    x32 = x.astype(np.float32)
+    w.state.x.from_numpy(x32)
+    driven = w.control.is_driven(np.arange(len(x))).astype(bool)
+    inv_mass = np.where(driven, 0.0, solver.model.inv_mass.to_numpy()).astype(np.float64)
+    solver.w.from_numpy(inv_mass.astype(np.float32))
+    solver.c_hit.from_numpy(np.zeros(len(x), np.float32))
+    a = chains.link_a.to_numpy()
+    rest = chains.rest.to_numpy().astype(np.float64)
+    lo, hi = chains.lo.to_numpy(), chains.hi.to_numpy()
+    groups = [[(np.append(a[lo[c]:hi[c]], a[hi[c] - 1] + 1), rest[lo[c]:hi[c]]) for c in range(g0, g1)]
+              for g0, g1 in chains.group_ranges]
+    expect = chain_step_reference(x32.astype(np.float64), inv_mass, groups, np.zeros(len(x), bool),
+                                  np.tile([0.0, 1.0, 0.0], (len(x), 1)))
+    chains.resweep(1e-3)
+    got = w.state.x.to_numpy()
+    others = np.ones(len(x), bool)
+    others[b0:b1] = False
+    np.testing.assert_array_equal(got[others], x32[others])
+    assert np.abs(got[b0:b1] - x32[b0:b1]).max() > 1e-3
+    np.testing.assert_allclose(got[b0:b1], expect[b0:b1], atol=2e-6)
+    # Within the tolerance nothing moves at all.
+    w.state.x.from_numpy(got)
+    rods = np.linalg.norm(np.diff(got[b0:b1].astype(np.float64), axis=0), axis=1) / rest[lo[1]:hi[1]] - 1.0
+    tol = float(np.abs(rods).max()) * 1.5 + 1e-6
+    chains.resweep(tol)
+    np.testing.assert_array_equal(w.state.x.to_numpy(), got)

@@ -149,6 +149,18 @@ def test_out_of_range_states_the_range():
     assert "5000 is out of range; allowed [1, 4096]" in err.message
 
 
+def test_chain_sweeps_range_and_round_trip():
+    """``sim.chain_sweeps`` takes 1..16 and ``sim.chain_tolerance`` 0..1; both survive dump and load."""
+    head = BASE.replace("macros:", "sim: {chain_sweeps: 0, chain_tolerance: 2.0}\nmacros:")
+    errs = errors_of(head)
+    messages = " | ".join(e.message for e in errs)
+    assert "0 is out of range; allowed [1, 16]" in messages
+    assert "2.0 is out of range; allowed [0, 1]" in messages
+    level = load_level_from_string(BASE.replace("macros:", "sim: {chain_sweeps: 3, chain_tolerance: 0.002}\nmacros:"))
+    assert (level.sim.chain_sweeps, level.sim.chain_tolerance) == (3, 0.002)
+    assert load_level_from_string(dump_level(level)) == level
+
+
 def test_unknown_maneuver_lists_registered_ones():
     """An unknown maneuver name is reported at its `run` line with the registered names."""
     text = BASE.replace("run: lv_wait\n      with: {ticks: 2}", "run: lv_jump\n      with: {ticks: 2}")

@@ -373,7 +373,11 @@ class Sim(_Model):
 
     ``max_retries`` is the number of stability rollbacks allowed per frame.
     ``self_collision_every`` runs cloth self-collision on every k-th substep
-    only (and always on the last substep of a frame).
+    only (and always on the last substep of a frame). ``chain_sweeps`` is how
+    many times each iteration alternates the exact chain step (ropes, cloth
+    rows and columns) with the contacts; sweeps after the first re-solve
+    only the chains with a rod still off its length by more than
+    ``chain_tolerance`` (relative).
     """
 
     fps: between(int, 1, 1000) = 60
@@ -384,6 +388,8 @@ class Sim(_Model):
     frames: between(int, 1, 1_000_000) = 240
     max_retries: between(int, 0, 10) = 3
     self_collision_every: between(int, 1, 16) = 1
+    chain_sweeps: between(int, 1, 16) = 1
+    chain_tolerance: between(float, 0.0, 1.0) = 1e-3
 
 
 class Budget(_Model):

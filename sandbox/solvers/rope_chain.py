@@ -183,12 +183,28 @@ class ChainProjection:
                         self.res[k] = 0.0
 
     @ti.func
-    def _chain(self, c):
-        """Solve one linearised chain: forward-eliminate, back-substitute, scatter."""
-        x = ti.static(self.st.x)
+    def _chain(self, c, tol: ti.template()):
+        """Solve one linearised chain: forward-eliminate, back-substitute, scatter.
+
+        With ``tol`` > 0 a chain whose rods are all within ``tol`` (relative)
+        of their length is left as it is.
+        """
         lo = self.lo[c]
         hi = self.hi[c]
         self._overreach(lo, hi)
+        active = True
+        if ti.static(tol > 0.0):
+            worst = 0.0
+            for j in range(lo, hi):
+                worst = ti.max(worst, ti.abs(self.res[j]) / self.rest[j])
+            active = worst > tol
+        if active:
+            self._solve_linear(lo, hi)
+
+    @ti.func
+    def _solve_linear(self, lo, hi):
+        """Thomas algorithm on links [lo, hi) of one chain, then the scatter."""
+        x = ti.static(self.st.x)
         for j in range(lo, hi):
             a = self.link_a[j]
             b = self.link_b[j]
@@ -245,12 +261,32 @@ class ChainProjection:
         """``solve_f`` as a kernel of its own (the solver fuses it into its substep kernel)."""
         self.solve_f()
 
+    @ti.kernel
+    def resweep(self, tol: ti.template()):
+        """``resweep_f`` as a kernel of its own."""
+        self.resweep_f(tol)
+
     @ti.func
     def solve_f(self):
         """One Newton step of every chain, group after group."""
         if ti.static(self.has_contacts and self.cloth_start < self.model.n):
             self._peel()
+        self._sweep(0.0)
+
+    @ti.func
+    def resweep_f(self, tol: ti.template()):
+        """Another Newton step of the chains that still have a rod off its length by more than ``tol``.
+
+        For a second or later sweep in one iteration (after the contacts have
+        moved particles again): the chains are linearised anew, O(L), but only
+        those off by more than ``tol`` are solved. The contact restriction is
+        the one the first sweep found (``_peel`` is not repeated).
+        """
+        self._sweep(tol)
+
+    @ti.func
+    def _sweep(self, tol: ti.template()):
         for g in ti.static(range(len(self.group_ranges))):
             self._linearise(self.link_ranges[g][0], self.link_ranges[g][1])
             for c in range(self.group_ranges[g][0], self.group_ranges[g][1]):
-                self._chain(c)
+                self._chain(c, tol)
