@@ -187,16 +187,22 @@ class ChainProjection:
         """Solve one linearised chain: forward-eliminate, back-substitute, scatter.
 
         With ``tol`` > 0 a chain whose rods are all within ``tol`` (relative)
-        of their length is left as it is.
+        of their length is left as it is (for cloth: none stretched by more).
         """
         lo = self.lo[c]
         hi = self.hi[c]
         self._overreach(lo, hi)
         active = True
         if ti.static(tol > 0.0):
+            # A rope's rods count both ways; a cloth's only when stretched
+            # (compressed edges are folds, and the first sweep saw to them).
+            cloth = self.link_a[lo] >= ti.static(self.cloth_start)
             worst = 0.0
             for j in range(lo, hi):
-                worst = ti.max(worst, ti.abs(self.res[j]) / self.rest[j])
+                off = -self.res[j]
+                if not cloth:
+                    off = ti.abs(off)
+                worst = ti.max(worst, off / self.rest[j])
             active = worst > tol
         if active:
             self._solve_linear(lo, hi)
