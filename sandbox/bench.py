@@ -109,6 +109,7 @@ def bench_level(path: str, frames: int = 60, overrides: dict | None = None, prof
         "stage_ms": {k: float(np.median(v)) for k, v in stages.items()},
         "final_strain": {n: float(s) for n, s in zip(list(w.ropes) + list(w.cloths), m["strain"])},
         "run_max_strain": dict(w.run_max["strain"]),
+        "final_max_speed": float(np.sqrt((w.velocities().astype(np.float64) ** 2).sum(axis=1).max())),
         "budget": w.level.budget.model_dump(),
     }
 

@@ -262,3 +262,17 @@ def test_in_process_runs_give_back_their_field_trees(tmp_path):
         code, s = run_level(level, RunOptions(out=tmp_path / f"b{k}", frames=3, progress=False))
         assert s["status"] == "completed" and (tmp_path / f"b{k}" / "state.npz").exists()
     assert ti.lang.impl.get_runtime().prog.get_snode_tree_size() == trees
+
+
+def test_bench_level_reports_times_passes_strain_and_speed():
+    """``bench_level`` (behind ``sandbox bench`` and tools/) times frames after warm-up and reports the per-pass split,
+    strain and the final largest speed of the state it leaves."""
+    from sandbox.bench import bench_level
+
+    r = bench_level(str(LEVEL), frames=4, profile_frames=1)
+    assert r["particles"] > 0
+    assert 0.0 < r["frame_ms_p50"] <= r["frame_ms_p95"] <= r["frame_ms_max"]
+    assert "predict" in r["stage_ms"] and "velocities" in r["stage_ms"]
+    assert all(v >= 0.0 for v in r["stage_ms"].values())
+    assert set(r["final_strain"]) and all(np.isfinite(v) for v in r["final_strain"].values())
+    assert 0.0 < r["final_max_speed"] < 200.0

@@ -186,25 +186,30 @@ class ChainProjection:
     def _chain(self, c, tol: ti.template()):
         """Solve one linearised chain: forward-eliminate, back-substitute, scatter.
 
-        With ``tol`` > 0 a chain whose rods are all within ``tol`` (relative)
-        of their length is left as it is (for cloth: none stretched by more).
+        With ``tol`` > 0 the chain is linearised here (the sweep skips the
+        parallel pass) and only if one of its rods is off its length by more
+        than ``tol`` (relative; for cloth: stretched by more); otherwise it
+        is left as it is.
         """
         lo = self.lo[c]
         hi = self.hi[c]
-        self._overreach(lo, hi)
         active = True
         if ti.static(tol > 0.0):
             # A rope's rods count both ways; a cloth's only when stretched
             # (compressed edges are folds, and the first sweep saw to them).
+            x = ti.static(self.st.x)
             cloth = self.link_a[lo] >= ti.static(self.cloth_start)
             worst = 0.0
             for j in range(lo, hi):
-                off = -self.res[j]
+                off = (x[self.link_b[j]] - x[self.link_a[j]]).norm() / self.rest[j] - 1.0
                 if not cloth:
                     off = ti.abs(off)
-                worst = ti.max(worst, off / self.rest[j])
+                worst = ti.max(worst, off)
             active = worst > tol
+            if active:
+                self._linearise(lo, hi)  # serial here: inside the loop over chains
         if active:
+            self._overreach(lo, hi)
             self._solve_linear(lo, hi)
 
     @ti.func
@@ -284,8 +289,8 @@ class ChainProjection:
         """Another Newton step of the chains that still have a rod off its length by more than ``tol``.
 
         For a second or later sweep in one iteration (after the contacts have
-        moved particles again): the chains are linearised anew, O(L), but only
-        those off by more than ``tol`` are solved. The contact restriction is
+        moved particles again): every rod's length is checked, O(L), but only
+        the chains off by more than ``tol`` are linearised and solved. The contact restriction is
         the one the first sweep found (``_peel`` is not repeated).
         """
         self._sweep(tol)
@@ -293,6 +298,7 @@ class ChainProjection:
     @ti.func
     def _sweep(self, tol: ti.template()):
         for g in ti.static(range(len(self.group_ranges))):
-            self._linearise(self.link_ranges[g][0], self.link_ranges[g][1])
+            if ti.static(tol == 0.0):
+                self._linearise(self.link_ranges[g][0], self.link_ranges[g][1])
             for c in range(self.group_ranges[g][0], self.group_ranges[g][1]):
                 self._chain(c, tol)
