@@ -176,7 +176,7 @@ class World:
 
         Rope (or strand ``R[i0:i1]``) sites: ``start``, ``end``, ``all``, an
         index, or ``[i0, i1]`` (a range, end exclusive). Cloth sites: a corner ``A``-``D``, ``center``, ``[i, j]``,
-        or ``line1``-``line4`` (a control line).
+        ``line1``-``line4`` (a control line) or an area ``a``-``d`` (the quadrant of that corner).
         """
         if body in self.ropes or "[" in body:
             r = self._rope(body)  # a rope or a strand R[i0:i1]; indices count from the strand's start
@@ -200,6 +200,8 @@ class World:
             c = self.cloths[body]
             if isinstance(site, str) and site.startswith("line"):
                 return c.control_line(int(site[4:]))
+            if site in ("a", "b", "c", "d"):
+                return c.area(site)
             if site == "all":
                 return np.arange(c.start, c.end)
             return np.array([c.site(site)])

@@ -137,11 +137,64 @@ def test_wrapping_fails_when_the_line_does_not_touch_the_object():
     assert "does not touch" in w.fsm.events[-2]["message"] or "does not touch" in w.fsm.events[-1]["message"]
 
 
+def _wrap_to_end(text: str, frames: int = 240):
+    w = _world(text)
+    for _ in range(frames):
+        w.step()
+        if w.fsm.finished:
+            break
+    return w
+
+
+def test_a_line_given_by_two_points_is_laid_like_the_corner_line_it_names():
+    """``lines: [[center, A]]`` is control line 1: the same particles, driven the same way, bitwise."""
+    by_corner = _wrap_to_end(SMALL.replace("corners: [A, C]", "corners: [A]"))
+    by_points = _wrap_to_end(SMALL.replace("corners: [A, C]", "lines: [[center, A]]"))
+    assert by_corner.fsm.state == by_points.fsm.state == "success"
+    np.testing.assert_array_equal(by_points.wraps[("cloth", "center-A")]["particles"],
+                                  by_corner.wraps[("cloth", "A")]["particles"])
+    np.testing.assert_array_equal(by_points.positions(), by_corner.positions())
+
+
+def test_a_line_from_the_centre_to_an_edge_midpoint_is_laid_over_the_box():
+    """A control line that is no corner's: from the centre to the middle of edge A-B, along a grid row."""
+    w = _wrap_to_end(SMALL.replace("corners: [A, C]", "lines: [[center, [0, 20]]]"))
+    assert w.fsm.state == "success", w.fsm.events[-3:]
+    c = w.cloths["cloth"]
+    np.testing.assert_array_equal(c.line_between("center", [0, 20]), c.index(np.arange(20, -1, -1), 20))
+    from sandbox.io.criteria import evaluate
+
+    results = {r["metric"]: r for r in evaluate(w.level.success, w)}
+    assert results["overlap_error_ratio"]["ok"] and results["max_penetration_ratio"]["ok"], results
+    # Shorter than a corner's line (20 spacings), it ends up the box's side, lying on it.
+    end = w.positions()[c.site([0, 20])][None].astype(np.float64)
+    d, _, _ = w.objects.query_numpy(end)
+    assert end[0, 1] > 0.1 and 0.0 <= d[0] <= c.thickness
+
+
+def test_areas_are_the_quadrants_of_their_corners():
+    w = _world(SMALL)
+    c = w.cloths["cloth"]
+    areas = {k: w.site_particles("cloth", k) for k in "abcd"}
+    for k, corner in zip("abcd", "ABCD"):
+        assert len(areas[k]) == 21 * 21
+        assert c.site(corner) in areas[k] and c.site("center") in areas[k]
+        others = [c.site(o) for o in "ABCD" if o != corner]
+        assert not np.isin(others, areas[k]).any()
+    every = np.unique(np.concatenate(list(areas.values())))
+    np.testing.assert_array_equal(every, np.arange(c.start, c.end))
+    with pytest.raises(ValueError, match="allowed: a, b, c, d"):
+        c.area("e")
+
+
 @pytest.mark.parametrize("old, new, message", [
     ("to: {object: box, site: top},\n                           beyond: up,", "", "give 'to'"),
     ("to: {object: box, site: top},", "angle: 30,", "beyond: up needs 'to'"),
     ("corners: [A, C]", "corners: [A, A]", "corners repeat"),
     ("corners: [A, C]", "corners: [A, E]", "corners"),
+    ("corners: [A, C]", "corners: []", "give 1 to 4 control lines"),
+    ("corners: [A, C]", "corners: [A, B, C], lines: [[center, [0, 20]], [center, [40, 20]]]", "give 1 to 4"),
+    ("corners: [A, C]", "lines: [[center, E]]", "not a cloth site"),
 ])
 def test_bad_wrapping_parameters_are_load_errors(old, new, message):
     assert old in SMALL

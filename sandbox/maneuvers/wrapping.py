@@ -38,6 +38,7 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 
+from sandbox.levels.schema import ClothSite
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.basic import TargetLike, resolve_target
 
@@ -135,6 +136,11 @@ class WrapParams(Params):
         body: the cloth.
         object: the object wrapped.
         corners: corners whose control lines (1-4 for A-D) are laid at once.
+        lines: other control lines, each ``[from, to]`` between two cloth
+            sites (a corner, ``center`` or ``[i, j]``): the straight chain of
+            particles from ``from`` (the end that lies on or under the
+            object) to ``to`` (the end that is laid over it); laid together
+            with the corners' lines.
         to: end of the target line (a named site of an object or a point);
             with ``angle`` as well, the traced line is adjusted to end there
             keeping its route (paper §7).
@@ -163,7 +169,8 @@ class WrapParams(Params):
 
     body: str
     object: str
-    corners: Annotated[list[Corner], pydantic.Field(min_length=1, max_length=4)]
+    corners: Annotated[list[Corner], pydantic.Field(max_length=4)] = []
+    lines: Annotated[list[tuple[ClothSite, ClothSite]], pydantic.Field(max_length=4)] = []
     to: TargetLike | None = None
     angle: float | None = None
     turns: float | None = None
@@ -181,9 +188,17 @@ class WrapParams(Params):
             raise ValueError("give 'to' (an end point), 'angle' (a traced direction), or both")
         if len(set(self.corners)) != len(self.corners):
             raise ValueError(f"corners repeat: {self.corners}")
+        if not 1 <= len(self.corners) + len(self.lines) <= 4:
+            raise ValueError(f"give 1 to 4 control lines in all ('corners' and 'lines'), "
+                             f"got {len(self.corners) + len(self.lines)}")
         if self.beyond == "up" and self.to is None:
             raise ValueError("beyond: up needs 'to' (where the corners stand up)")
         return self
+
+
+def _site_text(site) -> str:
+    """A cloth site as it reads in a line's name: ``A``, ``center``, ``[3,40]``."""
+    return f"[{site[0]},{site[1]}]" if isinstance(site, (list, tuple)) else str(site)
 
 
 class _Line:
@@ -277,10 +292,14 @@ class Wrapping(Maneuver):
         q = None
         if p.to is not None:
             q = geo.project(resolve_target(w, p.to))[0][0]
-        stop_short = p.stop_short if p.stop_short is not None else (cloth.thickness if len(p.corners) > 1 else 0.0)
+        specs = [(c, f"control line {LINE_OF_CORNER[c]} (corner {c})", cloth.control_line(LINE_OF_CORNER[c]))
+                 for c in p.corners]
+        for a, b in p.lines:
+            label = f"{_site_text(a)}-{_site_text(b)}"
+            specs.append((label, f"control line {label}", cloth.line_between(a, b)))
+        stop_short = p.stop_short if p.stop_short is not None else (cloth.thickness if len(specs) > 1 else 0.0)
         self.lines: list[_Line] = []
-        for corner in p.corners:
-            idx = cloth.control_line(LINE_OF_CORNER[corner])
+        for corner, what, idx in specs:
             ij = np.stack([(idx - cloth.start) % cloth.nx, (idx - cloth.start) // cloth.nx], axis=1)
             rest = ij * np.asarray(cloth.spacing)
             rest_arc = _arc(rest)
@@ -294,13 +313,13 @@ class Wrapping(Maneuver):
                                     & (np.abs(verts_lo[1] - x[idx, 1]) <= cloth.thickness))
             touching = np.union1d(touching, shadow)
             if len(touching) == 0:
-                self.message = (f"control line {LINE_OF_CORNER[corner]} (corner {corner}) of {p.body!r} does not "
+                self.message = (f"{what} of {p.body!r} does not "
                                 f"touch {p.object!r}: place the object on the cloth first (Anchoring with object)")
                 self.lines = []
                 return
             i0 = int(touching.max())
             if i0 >= len(idx) - 1:
-                self.message = f"corner {corner} of {p.body!r} already lies on {p.object!r}: nothing to wrap"
+                self.message = f"the end of {what} of {p.body!r} already lies on {p.object!r}: nothing to wrap"
                 self.lines = []
                 return
             length = rest_arc[-1] - rest_arc[i0]

@@ -53,31 +53,57 @@ class ClothRange:
         """Global particle index of grid point (i, j)."""
         return self.start + j * self.nx + i
 
-    def site(self, name) -> int:
-        """Global particle index of a cloth site: corner A-D, 'center' or [i, j]."""
+    def grid_of(self, name) -> tuple[int, int]:
+        """Grid coordinates (i, j) of a cloth site: corner A-D, 'center' or [i, j]."""
         if isinstance(name, (list, tuple)):
             i, j = int(name[0]), int(name[1])
             if not (0 <= i < self.nx and 0 <= j < self.nz):
                 raise ValueError(f"cloth {self.name!r}: grid index {[i, j]} outside [0,{self.nx - 1}]x[0,{self.nz - 1}]")
-            return self.index(i, j)
+            return i, j
         corners = {"A": (0, 0), "B": (0, self.nz - 1), "C": (self.nx - 1, self.nz - 1), "D": (self.nx - 1, 0)}
         if name in corners:
-            return self.index(*corners[name])
+            return corners[name]
         if name == "center":
-            return self.index(self.nx // 2, self.nz // 2)
+            return self.nx // 2, self.nz // 2
         raise ValueError(f"cloth {self.name!r}: unknown site {name!r}; allowed: A, B, C, D, center or [i, j]")
+
+    def site(self, name) -> int:
+        """Global particle index of a cloth site: corner A-D, 'center' or [i, j]."""
+        return self.index(*self.grid_of(name))
+
+    def line_between(self, p, q) -> np.ndarray:
+        """Global indices of the straight chain of particles from site p to site q (both included).
+
+        One particle per step along the longer grid axis, the other rounded:
+        rows, columns and diagonals are exact grid lines.
+        """
+        (i0, j0), (i1, j1) = self.grid_of(p), self.grid_of(q)
+        steps = max(abs(i1 - i0), abs(j1 - j0))
+        if steps == 0:
+            raise ValueError(f"cloth {self.name!r}: a control line needs two different points, got {p!r} twice")
+        t = np.linspace(0.0, 1.0, steps + 1)
+        ii = np.rint(i0 + t * (i1 - i0)).astype(int)
+        jj = np.rint(j0 + t * (j1 - j0)).astype(int)
+        return self.start + jj * self.nx + ii
 
     def control_line(self, k: int) -> np.ndarray:
         """Global indices of control line k (1-4): centre to corner A-D (SPEC §6)."""
         if k not in (1, 2, 3, 4):
             raise ValueError(f"control line {k} not allowed; allowed: 1, 2, 3, 4")
+        return self.line_between("center", "ABCD"[k - 1])
+
+    def area(self, name: str) -> np.ndarray:
+        """Global indices of area a-d: the quadrant of the grid that holds corner A-D (SPEC §6).
+
+        The quadrants share the centre row and column.
+        """
+        if name not in ("a", "b", "c", "d"):
+            raise ValueError(f"cloth {self.name!r}: unknown area {name!r}; allowed: a, b, c, d")
         ci, cj = self.nx // 2, self.nz // 2
-        corner = {1: (0, 0), 2: (0, self.nz - 1), 3: (self.nx - 1, self.nz - 1), 4: (self.nx - 1, 0)}[k]
-        steps = max(abs(corner[0] - ci), abs(corner[1] - cj))
-        t = np.linspace(0.0, 1.0, steps + 1)
-        ii = np.rint(ci + t * (corner[0] - ci)).astype(int)
-        jj = np.rint(cj + t * (corner[1] - cj)).astype(int)
-        return self.start + jj * self.nx + ii
+        ai, aj = self.grid_of(name.upper())
+        ii = np.arange(min(ai, ci), max(ai, ci) + 1)
+        jj = np.arange(min(aj, cj), max(aj, cj) + 1)
+        return self.start + (jj[:, None] * self.nx + ii[None, :]).ravel()
 
 
 @dataclass
