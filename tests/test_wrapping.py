@@ -195,6 +195,7 @@ def test_areas_are_the_quadrants_of_their_corners():
     ("corners: [A, C]", "corners: []", "give 1 to 4 control lines"),
     ("corners: [A, C]", "corners: [A, B, C], lines: [[center, [0, 20]], [center, [40, 20]]]", "give 1 to 4"),
     ("corners: [A, C]", "lines: [[center, E]]", "not a cloth site"),
+    ("corners: [A, C]", "lines: [[[3, 4], [3, 4]]]", "two different cloth points"),
 ])
 def test_bad_wrapping_parameters_are_load_errors(old, new, message):
     assert old in SMALL

@@ -188,6 +188,9 @@ class WrapParams(Params):
             raise ValueError("give 'to' (an end point), 'angle' (a traced direction), or both")
         if len(set(self.corners)) != len(self.corners):
             raise ValueError(f"corners repeat: {self.corners}")
+        for a, b in self.lines:
+            if a == b:
+                raise ValueError(f"line {[a, b]}: a control line needs two different cloth points")
         if not 1 <= len(self.corners) + len(self.lines) <= 4:
             raise ValueError(f"give 1 to 4 control lines in all ('corners' and 'lines'), "
                              f"got {len(self.corners) + len(self.lines)}")

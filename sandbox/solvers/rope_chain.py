@@ -290,8 +290,9 @@ class ChainProjection:
 
         For a second or later sweep in one iteration (after the contacts have
         moved particles again): every rod's length is checked, O(L), but only
-        the chains off by more than ``tol`` are linearised and solved. The contact restriction is
-        the one the first sweep found (``_peel`` is not repeated).
+        the chains off by more than ``tol`` are linearised and solved. The
+        contact restriction is the one the first sweep found (``_peel`` is not
+        repeated).
         """
         self._sweep(tol)
 
