@@ -1,4 +1,4 @@
-"""Every shipped level is valid, round-trips through dump and load, and builds."""
+"""Every shipped level (and every draft in levels/drafts) is valid, round-trips through dump and load, and builds."""
 
 import pathlib
 
@@ -9,9 +9,10 @@ from sandbox.levels import dump_level, load_level, load_level_from_string
 import sandbox.maneuvers  # noqa: F401  (registers the maneuvers levels use)
 
 LEVELS = sorted((pathlib.Path(__file__).resolve().parents[1] / "levels").glob("*.yaml"))
+DRAFTS = sorted((pathlib.Path(__file__).resolve().parents[1] / "levels" / "drafts").glob("*.yaml"))
 
 
-@pytest.mark.parametrize("path", LEVELS, ids=[p.stem for p in LEVELS])
+@pytest.mark.parametrize("path", LEVELS + DRAFTS, ids=[p.stem for p in LEVELS] + ["drafts/" + p.stem for p in DRAFTS])
 def test_shipped_level_is_valid_and_round_trips(path):
     """A shipped level loads without errors and its dump loads back to an equal level."""
     level = load_level(path)

@@ -161,6 +161,11 @@ class CrossingParams(Params):
     # pinches it (held through the crossing): the bottoms of a second half
     # knot then sit apart, on either side of the first, as the strands leave it.
     contact_offset: Annotated[float, pydantic.Field(ge=0)] = 0.0
+    # m: the hands then carry the two pinched bottoms apart, this far, level
+    # with the knot and on either side of it, before the tips cross: the
+    # second half knot starts from the same U as the first, with the knot
+    # tied before at its bottom instead of the object.
+    contact_spread: Annotated[float, pydantic.Field(gt=0)] | None = None
     height: Annotated[float, pydantic.Field(gt=0)] = 0.15  # m, X above the bottoms
     sign: Literal[1, -1] = 1  # +1: C passes in front of T (on +z)
     gap: Annotated[float, pydantic.Field(ge=0)] | None = None  # m; default 1.5 (r_C + r_T)
@@ -175,6 +180,13 @@ class CrossingParams(Params):
         if self.contact_offset > 0 and "contact" not in (self.active_base, self.target_base):
             raise ValueError("contact_offset moves a 'contact' bottom: set active_base or target_base "
                              "to 'contact', or leave contact_offset at 0")
+        if self.contact_spread is not None and not (
+                self.active_base == self.target_base == "contact" and self.contact_offset > 0):
+            raise ValueError("contact_spread carries two pinched bottoms apart: set active_base and "
+                             "target_base to 'contact' and contact_offset > 0, or leave contact_spread out")
+        if self.contact_spread is not None and self.contact_spread > 2.0 * self.contact_offset:
+            raise ValueError(f"contact_spread {self.contact_spread} is more than the rope between the two "
+                             f"pinches allows (2 x contact_offset = {2.0 * self.contact_offset:g})")
         return self
 
 
@@ -202,6 +214,7 @@ class Crossing(Maneuver):
         tip_t_site = p.target_tip if p.target_tip is not None else "end"
         tip_c_idx = w.site_particles(p.active, p.active_tip)
         tip_t_idx = w.site_particles(p.target, tip_t_site)
+        self.contacts = []  # where each "contact" bottom's rope leaves the knot
         base_c = self._base(x, self.c, self.t, p.active, p.active_base, p.active_tip, tip_c_idx)
         base_t = self._base(x, self.t, self.c, p.target, p.target_base, tip_t_site, tip_t_idx)
         self.moves = []  # (particle indices, current command, waypoints)
@@ -218,6 +231,10 @@ class Crossing(Maneuver):
         len_c = self.c.rod_length * abs(float(tip_c_idx.mean() - base_c.mean()))
         len_t = self.t.rod_length * abs(float(tip_t_idx.mean() - base_t.mean()))
         bc, bt = x[base_c].mean(axis=0), x[base_t].mean(axis=0)
+        spread = []  # (pinched bottom, from, to) carried apart by the hands
+        if p.contact_spread is not None:
+            bc, bt = self._spread(x, (base_c, base_t), (tip_c_idx, tip_t_idx))
+            spread = [(base_c, x[base_c].mean(axis=0), bc), (base_t, x[base_t].mean(axis=0), bt)]
         across = None
         if np.linalg.norm(_flat(bt - bc)) < 4.0 * (self.c.radius + self.t.radius):
             # Both strands leave one knot: C's tip goes over to T's tip's side.
@@ -228,7 +245,7 @@ class Crossing(Maneuver):
         plans = [(p.active, p.active_tip, tip_c, p.sign)]
         if p.target_tip is not None:
             plans.append((p.target, p.target_tip, tip_t, -p.sign))
-        bases = (x[base_c].mean(axis=0), x[base_t].mean(axis=0))
+        bases = (bc, bt)
         reach = (p.slack * len_c, p.slack * len_t)
         for k, (body, site, goal, s) in enumerate(plans):
             idx = w.site_particles(body, site)
@@ -241,11 +258,51 @@ class Crossing(Maneuver):
             ways = [_within(q, bases[k], max(reach[k], float(np.linalg.norm(pos - bases[k])))) for q in ways]
             self.moves.append((idx, pos, ways))
             w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+        for idx, pos, goal in spread:
+            self.moves.append((idx, pos, [goal]))
         self.total = sum(float(np.linalg.norm(np.diff(np.vstack([m[1], *m[2]]), axis=0), axis=1).sum())
                          for m in self.moves) or 1.0
         self.travelled = 0.0
         w.crossings = getattr(w, "crossings", {})
         w.crossings[(p.active, p.target)] = self.x.copy()
+
+    def _spread(self, x: np.ndarray, bases, tips) -> tuple[np.ndarray, np.ndarray]:
+        """Where the hands carry the two pinched bottoms: ``contact_spread`` apart about the knot.
+
+        Level with the knot (the midpoint of the two contacts), each on its
+        own tip's side (along the line from C's tip to T's), raised so that the rope
+        from its contact (``contact_offset`` long) sags a little but never
+        has to stretch; a bottom is brought closer to the knot where its
+        tip, lifted, would be out of the reach of the rope between them.
+        """
+        p = self.params
+        centre = 0.5 * (self.contacts[0] + self.contacts[1])
+        tip_c, tip_t = (x[t].mean(axis=0) for t in tips)
+        axis = _unit(_flat(tip_t - tip_c), _unit(_flat(self.contacts[1] - self.contacts[0]), np.array([1.0, 0.0, 0.0])))
+        half = 0.5 * p.contact_spread
+        reach = 0.95 * p.contact_offset
+        rise = 0.5 * float(np.sqrt(max(reach * reach - half * half, 0.0)))
+        out = []
+        for side, contact, base, tip in ((-1.0, self.contacts[0], bases[0], tips[0]), (1.0, self.contacts[1], bases[1], tips[1])):
+            goal = centre + side * half * axis + rise * _UP
+            lifted = x[tip].mean(axis=0) + p.lift * _UP
+            tip_reach = p.slack * self.c.rod_length * abs(float(tip.mean() - base.mean()))
+            for _ in range(8):  # alternate projections onto the two balls
+                goal = _within(_within(goal, lifted, tip_reach), contact, reach)
+            # Where the two balls do not meet (the rope is near taut), go only
+            # as far towards the goal as keeps the bottom within both reaches
+            # (its place now is, being on the rope).
+            now = x[base].mean(axis=0)
+            r_c = max(reach, float(np.linalg.norm(now - contact)))
+            r_t = max(tip_reach, float(np.linalg.norm(now - lifted)))
+            lo, hi = 0.0, 1.0
+            for _ in range(30):
+                mid = 0.5 * (lo + hi)
+                q = now + mid * (goal - now)
+                ok = np.linalg.norm(q - contact) <= r_c and np.linalg.norm(q - lifted) <= r_t
+                lo, hi = (mid, hi) if ok else (lo, mid)
+            out.append(now + lo * (goal - now))
+        return out[0], out[1]
 
     def _base(self, x, strand, other, body, site, tip_site, tip_idx) -> np.ndarray | None:
         """Global indices of a strand's bottom point: a site, its far end, or ``"contact"``.
@@ -268,6 +325,7 @@ class Crossing(Maneuver):
         if k is None:
             self.message = f"strand {body!r} does not touch {other.name!r}: no contact to cross above"
             return None
+        self.contacts.append(x[k].copy())
         if self.params.contact_offset > 0:
             step = int(round(self.params.contact_offset / strand.rod_length))
             k = int(np.clip(k + np.sign(tip - k) * step, min(k, tip), max(k, tip)))

@@ -114,7 +114,10 @@ class Winding(Maneuver):
         the line through X_T along the chord of the held run, at their rest
         spacing: the winding then starts on a straight, still piece of T.
         ``xt`` is updated in place to the straightened layout (G is traced on
-        it). Returns their global indices.
+        it). The run is shortened on a side where its end would land out of
+        the rope's reach from the nearest particle held outside it (a hand
+        pinching T, T's standing end): the rods between them would have to
+        stretch by more than 1 %. Returns their global indices.
         """
         w = self.world
         half = int(round(0.5 * self.params.straighten / self.t.rod_length))
@@ -124,8 +127,21 @@ class Winding(Maneuver):
         xs = xt.astype(np.float64)
         d = xs[hi] - xs[lo]
         d /= max(float(np.linalg.norm(d)), 1e-12)
+        rod = self.t.rod_length
+        held = np.flatnonzero(w.control.is_driven(self.t.start + np.arange(len(xt))))
+
+        def reachable(i: int, h: int) -> bool:
+            return float(np.linalg.norm(xs[self.j0] + (i - self.j0) * rod * d - xs[h])) <= 1.01 * abs(i - h) * rod
+
+        below, above = held[held < lo], held[held > hi]
+        while lo < self.j0 and len(below) and not reachable(lo, int(below.max())):
+            lo += 1
+        while hi > self.j0 and len(above) and not reachable(hi, int(above.min())):
+            hi -= 1
+        if hi - lo < 2:
+            return np.zeros(0, np.int64)
         run = np.arange(lo, hi + 1)
-        line = xs[self.j0] + ((run - self.j0) * self.t.rod_length)[:, None] * d
+        line = xs[self.j0] + ((run - self.j0) * rod)[:, None] * d
         idx = self.t.start + run
         w.control.drive(idx, line)
         xt[run] = line
@@ -198,6 +214,7 @@ class Winding(Maneuver):
         axis = self.tube.frame(s_ax)[0][0]
         if np.linalg.norm(self.pos - axis) < self.R:
             self.pos = on_tube
+        self.pos = self._one_rod_from_held(idx, self.pos)
         w.control.drive([idx], self.pos[None, :])
         if p.carry_tail > 0:
             self._carry_tail(target)
@@ -223,6 +240,24 @@ class Winding(Maneuver):
             self.progress = 1.0
             return Status.DONE
         return Status.RUNNING
+
+    def _one_rod_from_held(self, idx: int, pos: np.ndarray) -> np.ndarray:
+        """``pos`` put one rod from C's neighbour of ``idx`` when that neighbour is held.
+
+        Two held neighbours are joined by one rod that nothing else can
+        fix: a command nearer or further than its rest length (a pinched
+        crossing particle held where G was traced before T moved, the next
+        target sampled on the new G) would compress or stretch it.
+        """
+        w = self.world
+        for h in (idx - 1, idx + 1):
+            if self.c.start <= h < self.c.end and w.control.is_driven([h])[0]:
+                xh = w.positions()[h].astype(np.float64)
+                v = pos - xh
+                n = float(np.linalg.norm(v))
+                if n > 1e-12:
+                    pos = xh + v * (self.c.rod_length / n)
+        return pos
 
     def _carry_tail(self, target: np.ndarray) -> None:
         """Hold C's tip out along G's tangent at the current target, like a hand passing it around T.
