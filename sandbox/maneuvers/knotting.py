@@ -295,6 +295,9 @@ class Crossing(Maneuver):
             now = x[base].mean(axis=0)
             r_c = max(reach, float(np.linalg.norm(now - contact)))
             r_t = max(tip_reach, float(np.linalg.norm(now - lifted)))
+            if np.linalg.norm(goal - contact) <= r_c and np.linalg.norm(goal - lifted) <= r_t:
+                out.append(goal)
+                continue
             lo, hi = 0.0, 1.0
             for _ in range(30):
                 mid = 0.5 * (lo + hi)
