@@ -35,6 +35,10 @@ from sandbox import runtime
 # A stretch of chain held at both ends closer than this fraction to its full
 # reach is laid straight (see ChainProjection._overreach).
 SLACK = 1e-4
+# A rope rod whose ends can move along it by less than this fraction of
+# their free inverse mass under the contact restriction is solved with its
+# particles free of their contacts (ChainProjection._unpin_blocked).
+BLOCKED = 1e-3
 
 
 def build_chains(data) -> list[list[np.ndarray]]:
@@ -213,9 +217,36 @@ class ChainProjection:
             self._solve_linear(lo, hi)
 
     @ti.func
+    def _unpin_blocked(self, lo, hi, on: ti.template()):
+        """Let a rope particle leave its contact where a rod of its chain could not change length otherwise.
+
+        A rod from a held particle (or one that may only slide) to a particle
+        whose contact normal lies all but along the rod has a pivot near
+        zero: solved under the contact restriction, its residual would
+        throw the particle sideways by centimetres. Such a rod's particles
+        are solved free of their contact this step (the contacts pass then
+        puts them back on the surface). ``on`` sets the flags, off clears
+        them. Cloth chains keep their peel flags.
+        """
+        if ti.static(self.has_contacts):
+            if self.link_a[lo] < ti.static(self.cloth_start):
+                for j in range(lo, hi):
+                    a = self.link_a[j]
+                    b = self.link_b[j]
+                    if ti.static(on):
+                        n = self.nrm[j]
+                        if self._wdot(a, n, n) + self._wdot(b, n, n) <= ti.static(BLOCKED) * (self.w[a] + self.w[b]):
+                            self.peeled[a] = 1
+                            self.peeled[b] = 1
+                    else:
+                        self.peeled[a] = 0
+                        self.peeled[b] = 0
+
+    @ti.func
     def _solve_linear(self, lo, hi):
         """Thomas algorithm on links [lo, hi) of one chain, then the scatter."""
         x = ti.static(self.st.x)
+        self._unpin_blocked(lo, hi, True)
         for j in range(lo, hi):
             a = self.link_a[j]
             b = self.link_b[j]
@@ -250,6 +281,7 @@ class ChainProjection:
             lam = self.dp[j]
             x[a] = x[a] - lam * self._wapply(a, self.nrm[j])
             x[b] = x[b] + lam * self._wapply(b, self.nrm[j])
+        self._unpin_blocked(lo, hi, False)
 
     @ti.func
     def _peel(self):
