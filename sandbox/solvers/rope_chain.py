@@ -39,6 +39,9 @@ SLACK = 1e-4
 # their free inverse mass under the contact restriction is solved with its
 # particles free of their contacts (ChainProjection._unpin_blocked).
 BLOCKED = 1e-3
+# A chain step that moves a particle by more than this many rods and leaves
+# a rod further off than before is scaled back (ChainProjection._step_scale).
+THROW = 0.5
 
 
 def build_chains(data) -> list[list[np.ndarray]]:
@@ -112,6 +115,9 @@ class ChainProjection:
         self.nrm = ti.Vector.field(3, ti.f32, shape=n_links)
         self.peeled = ti.field(ti.i32, shape=model.n) if self.has_contacts else None
         self.cloth_start = min((c.start for c in model.data.cloths), default=model.n)
+        # Rope chains get the guards against near-singular steps (_unpin_blocked,
+        # _step_scale); a scene without ropes compiles none of them.
+        self.has_ropes = any(r.stretch_compliance == 0.0 and r.end - r.start >= 2 for r in model.data.ropes)
         self.res = ti.field(ti.f32, shape=n_links)  # -(length - rest) at the linearisation
         self.cp = ti.field(ti.f32, shape=n_links)
         self.dp = ti.field(ti.f32, shape=n_links)
@@ -228,7 +234,7 @@ class ChainProjection:
         puts them back on the surface). ``on`` sets the flags, off clears
         them. Cloth chains keep their peel flags.
         """
-        if ti.static(self.has_contacts):
+        if ti.static(self.has_contacts and self.has_ropes):
             if self.link_a[lo] < ti.static(self.cloth_start):
                 for j in range(lo, hi):
                     a = self.link_a[j]
@@ -275,13 +281,66 @@ class ChainProjection:
             j = hi - 1 - (jj - lo)
             if j + 1 < hi:
                 self.dp[j] = self.dp[j] - self.cp[j] * self.dp[j + 1]
+        s = self._step_scale(lo, hi)
         for j in range(lo, hi):  # scatter in chain order (the order fixes the float sums)
             a = self.link_a[j]
             b = self.link_b[j]
-            lam = self.dp[j]
+            lam = s * self.dp[j]
             x[a] = x[a] - lam * self._wapply(a, self.nrm[j])
             x[b] = x[b] + lam * self._wapply(b, self.nrm[j])
         self._unpin_blocked(lo, hi, False)
+
+    @ti.func
+    def _step_scale(self, lo, hi) -> ti.f32:
+        """1, or less for a step that would throw particles and leave the chain further off than before.
+
+        The linearised system can be all but singular in a way no single row
+        shows (a fold of rope whose particles touch a surface and may only
+        slide on it): a residual of a fraction of a millimetre then comes
+        back as a step of centimetres. A step that moves some particle by
+        more than ``THROW`` of a rod and leaves a rod further off its rest
+        length than the chain's worst rod was is halved, up to three times,
+        then not taken (the Gauss-Seidel passes still see to the rods). Any
+        other step is applied unchanged. O(k) per try. Rope chains only:
+        cloth chains keep every step.
+        """
+        s = 1.0
+        if ti.static(self.has_ropes):
+            if self.link_a[lo] < ti.static(self.cloth_start):
+                s = self._rope_step_scale(lo, hi)
+        return s
+
+    @ti.func
+    def _rope_step_scale(self, lo, hi) -> ti.f32:
+        x = ti.static(self.st.x)
+        before = 0.0
+        for j in range(lo, hi):
+            before = ti.max(before, ti.abs(self.res[j]) / self.rest[j])
+        s = 1.0
+        done = False
+        for _ in range(4):
+            if not done:
+                worst = 0.0
+                move = 0.0
+                for j in range(lo, hi):
+                    a = self.link_a[j]
+                    b = self.link_b[j]
+                    da = -s * self.dp[j] * self._wapply(a, self.nrm[j])
+                    db = s * self.dp[j] * self._wapply(b, self.nrm[j])
+                    if j > lo:
+                        da += s * self.dp[j - 1] * self._wapply(a, self.nrm[j - 1])
+                    if j + 1 < hi:
+                        db -= s * self.dp[j + 1] * self._wapply(b, self.nrm[j + 1])
+                    length = (x[b] + db - x[a] - da).norm()
+                    worst = ti.max(worst, ti.abs(length - self.rest[j]) / self.rest[j])
+                    move = ti.max(move, ti.max(da.norm(), db.norm()) / self.rest[j])
+                if worst <= before or move <= ti.static(THROW):
+                    done = True
+                else:
+                    s *= 0.5
+        if not done:
+            s = 0.0
+        return s
 
     @ti.func
     def _peel(self):
