@@ -273,6 +273,15 @@ def test_resweep_skips_cloth_chains_that_are_only_compressed():
     np.testing.assert_array_equal(got[others], stretched[others].astype(np.float64))
 
 
+def _drop(w, frames: int) -> tuple[int, float]:
+    """Step ``frames`` frames: the frames retried (blow-ups) and the largest particle speed (m/s)."""
+    retries, vmax = 0, 0.0
+    for _ in range(frames):
+        retries += w.step().get("retries", 0)
+        vmax = max(vmax, float(np.linalg.norm(w.state.v.to_numpy(), axis=1).max()))
+    return retries, vmax
+
+
 L_OVER_BOX = """
 version: 1
 name: l_over_box
@@ -295,12 +304,7 @@ def test_a_rope_folding_against_a_box_is_not_thrown():
     contact restriction its pivot is ~1e-5 of the free one, and the step moved particle 1 by 5 cm and
     blew the frame up (it was retried). That rod is now solved with its particles free of their
     contacts: no retry, no particle faster than 3 m/s."""
-    w = world_from_text(L_OVER_BOX)
-    retries, vmax = 0, 0.0
-    for _ in range(12):
-        row = w.step()
-        retries += row.get("retries", 0)
-        vmax = max(vmax, float(np.linalg.norm(w.state.v.to_numpy(), axis=1).max()))
+    retries, vmax = _drop(world_from_text(L_OVER_BOX), 12)
     assert retries == 0 and vmax < 3.0
 
 
@@ -328,10 +332,5 @@ def test_a_fold_with_no_small_pivot_is_not_thrown():
     rope B touching the box made the chain system singular with no single small pivot; the step
     moved a particle by 3.5 cm and the next frame blew up at every retry (up to 160 substeps).
     Such a step is scaled back now: no retry, nothing faster than 4 m/s."""
-    w = world_from_text(_granny_draft_shifted(0.05))
-    retries, vmax = 0, 0.0
-    for _ in range(14):
-        row = w.step()
-        retries += row.get("retries", 0)
-        vmax = max(vmax, float(np.linalg.norm(w.state.v.to_numpy(), axis=1).max()))
+    retries, vmax = _drop(world_from_text(_granny_draft_shifted(0.05)), 14)
     assert retries == 0 and vmax < 4.0
