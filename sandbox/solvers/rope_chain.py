@@ -19,7 +19,10 @@ one-sided: a particle whose chain neighbour is already off the surface
 (more than 30% of a rod above it along the normal) may follow it, so a
 lifted control line peels the cloth off the ground (``_peel``) instead of
 meeting a rod that no motion of its free end can shorten. Only cloth chains
-peel; ropes keep the two-sided restriction their knots were tuned with.
+peel; ropes keep the two-sided restriction their knots were tuned with,
+except for a rod the restriction would all but lock (``_unpin_blocked``).
+A rope chain's step that would throw a particle and leave the chain further
+off than it was is scaled back (``_step_scale``).
 
 Chains are grouped so that no two chains of a group share a particle (ropes
 and cloth rows in one group, cloth columns in another); the chains of a
