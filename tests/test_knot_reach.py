@@ -1,0 +1,141 @@
+"""Crossing's contact_spread, and Winding's straightened run and pinch kept within the rope's reach."""
+
+import numpy as np
+import pytest
+
+from sandbox.levels import LevelError, load_level_from_string
+
+import sandbox.maneuvers  # noqa: F401
+from tests.levelkit import world_from_text as _world
+from tests.test_knotting import ROOT, TOUCHING
+
+
+TOUCHING_SLACK = (TOUCHING.replace("OFFSET", "0.1, contact_spread: 0.12")
+                  .replace("[[-0.3, 0.5, 0], [0.3, 0.5, 0]]", "[[-0.3, 0.5, 0], [0.2, 0.5, 0], [0.2, 0.7, 0]]")
+                  .replace("[[0, 0.512, -0.3], [0, 0.512, 0.3]]", "[[0, 0.512, -0.3], [0, 0.512, 0.2], [0, 0.712, 0.2]]"))
+
+
+def test_crossing_contact_spread_carries_the_bottoms_apart_within_reach():
+    """contact_spread: the pinched bottoms go to either side of the knot, each on its own tip's side,
+    never further from its contact than the pinched rope or from its tip than the rope between them,
+    and no rod stretches on the way."""
+    w = _world(TOUCHING_SLACK)
+    w.step()
+    m = w.fsm._maneuver
+    a, b = w._rope("A"), w._rope("B")
+    bases = [idx for idx, _, ways in m.moves if len(ways) == 1]  # the carried bottoms: C's (B), then T's (A)
+    goals = [ways[0] for _, _, ways in m.moves if len(ways) == 1]
+    assert len(bases) == 2
+    tips = [b.end - 1, a.end - 1]
+    x0 = w.positions().astype(np.float64)
+    axis = x0[tips[1]] - x0[tips[0]]
+    axis[1] = 0.0
+    centre = 0.5 * (m.contacts[0] + m.contacts[1])
+    assert float((goals[0] - centre) @ axis) < 0 < float((goals[1] - centre) @ axis)
+    # Carried apart by about the spread (C's is drawn a little towards its lifted tip, whose reach binds).
+    assert 0.10 < float(np.linalg.norm((goals[1] - goals[0])[[0, 2]])) < 0.125
+    for base, goal, contact, tip in zip(bases, goals, m.contacts, tips):
+        assert np.linalg.norm(goal - contact) <= 0.95 * 0.1 + 1e-9
+        lifted = x0[tip] + m.params.lift * np.array([0.0, 1.0, 0.0])
+        assert np.linalg.norm(goal - lifted) <= m.params.slack * 0.01 * abs(tip - int(base[0])) + 1e-9
+    worst = 0.0
+    for _ in range(120):
+        w.step()
+        for r in (a, b):
+            seg = np.linalg.norm(np.diff(w.positions()[r.start:r.end], axis=0), axis=1)
+            worst = max(worst, float(np.abs(seg / 0.01 - 1).max()))
+        if w.fsm.finished:
+            break
+    x = w.positions().astype(np.float64)
+    for base, goal in zip(bases, goals):
+        assert w.control.is_driven(base).all()
+        np.testing.assert_allclose(x[base[0]], goal, atol=1e-5)
+    assert worst < 0.01
+
+
+def test_crossing_contact_spread_on_taut_ropes_keeps_the_bottoms_within_reach():
+    """Ropes pinned taut: no place apart is within reach of both the contact and the tip, so the
+    bottoms move only as far as keeps them within both, and nothing stretches."""
+    w = _world(TOUCHING.replace("OFFSET", "0.1, contact_spread: 0.12"))
+    w.step()
+    m = w.fsm._maneuver
+    x0 = w.positions().astype(np.float64)
+    tips = [w._rope("B").end - 1, w._rope("A").end - 1]
+    carried = [(idx, ways[0]) for idx, _, ways in m.moves if len(ways) == 1]
+    for (base, goal), contact, tip in zip(carried, m.contacts, tips):
+        lifted = x0[tip] + m.params.lift * np.array([0.0, 1.0, 0.0])
+        now = x0[base[0]]
+        assert np.linalg.norm(goal - contact) <= max(0.095, np.linalg.norm(now - contact)) + 1e-7
+        assert np.linalg.norm(goal - lifted) <= max(0.9 * 0.01 * (tip - base[0]), np.linalg.norm(now - lifted)) + 1e-7
+
+
+@pytest.mark.parametrize("extra, message", [
+    ("contact_spread: 0.1", "contact_spread carries two pinched bottoms apart"),
+    ("contact_offset: 0.04, contact_spread: 0.1", "more than the rope between the two pinches allows"),
+])
+def test_contact_spread_needs_two_pinched_contacts_and_the_rope_for_it(extra, message):
+    text = TOUCHING.replace("contact_offset: OFFSET", extra)
+    if "contact_offset" not in extra:
+        text = text.replace("active_base: contact, target_base: contact,", "")
+    with pytest.raises(LevelError) as err:
+        load_level_from_string(text)
+    assert message in str(err.value)
+
+
+def test_winding_pinch_keeps_the_next_particle_one_rod_from_the_crossing():
+    """A pinched crossing particle stays where G was traced; as T moves G is traced again, and the next
+    particle's command is put one rod from the held one rather than on the new G (which compressed that
+    rod by ~5 % here before): over the whole winding that rod stays within 1 %."""
+    text = (ROOT / "levels" / "rope_wind.yaml").read_text()
+    text = text.replace("handedness: 1}, timeout: 150}", "handedness: 1, pinch: true}, timeout: 300}")
+    w = _world(text)
+    worst, m = 0.0, None
+    while w.fsm.state != "2:Wait" and not w.fsm.finished:
+        w.step()
+        if w.fsm.state == "1:Winding":
+            m = w.fsm._maneuver
+            x = w.positions()
+            worst = max(worst, abs(float(np.linalg.norm(x[m._particle(0)] - x[m._particle(1)])) / m.c.rod_length - 1))
+    assert w.fsm.state == "2:Wait"
+    assert worst < 0.01
+    held = m._particle(0)
+    assert w.control.is_driven([held])[0]
+    x = w.positions().astype(np.float64)
+    np.testing.assert_allclose(m._one_rod_from_held(held + 1, x[held] + [0.0, 0.003, 0.0]),
+                               x[held] + [0.0, m.c.rod_length, 0.0], atol=1e-7)
+    free = m._particle(m.n - 1) + 3  # its neighbours are not held: the command is left alone
+    assert not w.control.is_driven([free - 1, free + 1]).any()
+    np.testing.assert_array_equal(m._one_rod_from_held(free, x[free] + 0.003), x[free] + 0.003)
+
+
+BENT = """
+version: 1
+name: bent
+scene:
+  ropes:
+    - {name: T, points: [[-0.5, 0.5, 0], [0, 0.5, 0], [0, 0.5, 0.5]], rod_length: 0.02, radius: 0.01,
+       pins: [start, end, 31]}
+    - {name: C, points: [[0.0, 0.8, -0.05], [0.0, 0.517, -0.05], [0.0, 0.3, 0.55]], rod_length: 0.01,
+       radius: 0.005, pins: [start]}
+sim: {fps: 60, substeps: 20, iterations: 4}
+fsm:
+  - {run: Winding, with: {active: C, target: T, theta: 45, w0: 1, straighten: 0.2}, timeout: 60}
+"""
+
+
+def test_straightened_run_stops_short_of_a_held_particle_it_cannot_reach():
+    """T bends at X_T and is held 6 rods past it: straightening 5 rods on each side along the chord
+    would put the run's end 4.3 rods from the held particle, one rod away along the rope. The run is
+    cut back on that side instead (and by a rod on the other, where T is taut to its pinned start),
+    and no rod of T stretches."""
+    w = _world(BENT)
+    t = w._rope("T")
+    w.step()
+    m = w.fsm._maneuver
+    assert m.j0 == 25
+    run = m.straight - t.start
+    assert run.min() <= 21 and 25 < run.max() < 30  # the held side cut back by more than two rods
+    x = w.rope_positions("T").astype(np.float64)
+    np.testing.assert_allclose(x[31], [0.0, 0.5, 0.12], atol=1e-6)
+    seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    assert np.abs(seg / 0.02 - 1).max() < 0.01
