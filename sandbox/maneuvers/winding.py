@@ -250,13 +250,14 @@ class Winding(Maneuver):
         target sampled on the new G) would compress or stretch it.
         """
         w = self.world
-        for h in (idx - 1, idx + 1):
-            if self.c.start <= h < self.c.end and w.control.is_driven([h])[0]:
-                xh = w.positions()[h].astype(np.float64)
-                v = pos - xh
-                n = float(np.linalg.norm(v))
-                if n > 1e-12:
-                    pos = xh + v * (self.c.rod_length / n)
+        held = [h for h in (idx - 1, idx + 1) if self.c.start <= h < self.c.end and w.control.is_driven([h])[0]]
+        x = w.positions() if held else None  # one read-back of the particles, only when needed
+        for h in held:
+            xh = x[h].astype(np.float64)
+            v = pos - xh
+            n = float(np.linalg.norm(v))
+            if n > 1e-12:
+                pos = xh + v * (self.c.rod_length / n)
         return pos
 
     def _carry_tail(self, target: np.ndarray) -> None:
