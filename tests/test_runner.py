@@ -276,3 +276,20 @@ def test_bench_level_reports_times_passes_strain_and_speed():
     assert all(v >= 0.0 for v in r["stage_ms"].values())
     assert set(r["final_strain"]) and all(np.isfinite(v) for v in r["final_strain"].values())
     assert 0.0 < r["final_max_speed"] < 200.0
+
+
+def test_hold_rest_holds_the_end_state_and_records_every_frame(tmp_path, monkeypatch):
+    """tools/hold_rest.py runs a level to its FSM's end (here: its frame count) and then holds it."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import hold_rest
+
+    monkeypatch.setattr(sys, "argv", ["hold_rest.py", str(LEVEL), "--seconds", "0.5", "--out", str(tmp_path)])
+    hold_rest.main()
+    r = json.loads((tmp_path / "hold.json").read_text())
+    assert r["fsm_end"]["frame"] == 20 and len(r["frames"]) == 30
+    times = [f["time"] for f in r["frames"]]
+    assert np.allclose(np.diff(times), 1.0 / 60.0) and abs(times[0] - 21 / 60.0) < 1e-9
+    assert all(f["energy"] >= 0.0 and f["max_speed"] >= f["mean_speed"] >= 0.0 for f in r["frames"])
+    assert r["energy_last_second"] == pytest.approx(np.mean([f["energy"] for f in r["frames"]]))
+    assert r["max_strain"] == max(f["strain"] for f in r["frames"]) and r["retries"] == 0
+    assert (tmp_path / "hold.png").stat().st_size > 1000

@@ -245,7 +245,8 @@ class ClothSpec(_Model):
         thickness: collision thickness (m); None means 1.5 x particle spacing.
         stretch_compliance, shear_compliance, bend_compliance: XPBD
             compliances (inverse stiffness).
-        damping: velocity damping per step, in [0, 1].
+        damping: fraction of velocity lost per second (each substep scales it
+            by 1 - damping * dt), in [0, 1].
         pins: particles held in place.
         color, back_color: RGB of the two sides, in [0, 1].
     """
