@@ -63,10 +63,10 @@ class HashGrid:
         self.item_cell = ti.Vector.field(3, ti.i32, shape=capacity)
 
     @ti.func
-    def _count(self, pts: ti.template(), offset: ti.i32, n: ti.i32, inv_cell: ti.f32):
-        for b in self.count:
+    def _count(self, pts: ti.template(), offset: ti.i32, n: ti.i32, inv_cell: ti.f32, go: ti.i32):
+        for b in range(go * self.table_size):
             self.count[b] = 0
-        for k in range(n):
+        for k in range(go * n):
             c = cell_of(pts[offset + k], inv_cell)
             h = hash_cell(c, self.mask)
             self.item_cell[k] = c
@@ -74,8 +74,8 @@ class HashGrid:
             ti.atomic_add(self.count[h], 1)
 
     @ti.func
-    def _scan(self):
-        for blk in range(self.n_blocks):
+    def _scan(self, go: ti.i32):
+        for blk in range(go * self.n_blocks):
             acc = 0
             for k in range(_BLOCK):
                 b = blk * _BLOCK + k
@@ -84,25 +84,26 @@ class HashGrid:
                     acc += self.count[b]
             self.block_sum[blk] = acc
         ti.loop_config(serialize=True)
-        for blk in range(1):
+        for blk in range(go):
             acc = 0
             for k in range(self.n_blocks):
                 v = self.block_sum[k]
                 self.block_sum[k] = acc
                 acc += v
             self.block_sum[self.n_blocks] = acc
-        for b in range(self.table_size):
+        for b in range(go * self.table_size):
             self.start[b] += self.block_sum[b // _BLOCK]
             self.count[b] = 0
-        self.start[self.table_size] = self.block_sum[self.n_blocks]
+        if go:
+            self.start[self.table_size] = self.block_sum[self.n_blocks]
 
     @ti.func
-    def _place(self, n: ti.i32):
-        for k in range(n):
+    def _place(self, n: ti.i32, go: ti.i32):
+        for k in range(go * n):
             h = self.item_bucket[k]
             slot = self.start[h] + ti.atomic_add(self.count[h], 1)
             self.entries[slot] = k
-        for b in range(self.table_size):
+        for b in range(go * self.table_size):
             lo = self.start[b]
             hi = self.start[b + 1]
             for a in range(lo + 1, hi):
@@ -116,9 +117,18 @@ class HashGrid:
     @ti.func
     def build_f(self, pts: ti.template(), offset: ti.i32, n: ti.i32):
         """Bin items ``pts[offset : offset + n]`` (ids relative to offset); Taichi scope."""
-        self._count(pts, offset, n, self.inv_cell)
-        self._scan()
-        self._place(n)
+        self.build_if_f(pts, offset, n, 1)
+
+    @ti.func
+    def build_if_f(self, pts: ti.template(), offset: ti.i32, n: ti.i32, go: ti.i32):
+        """``build_f`` if ``go`` is 1, nothing if 0 (a run-time choice inside a fused kernel).
+
+        Every loop runs over ``go`` times its range, so it stays a parallel
+        top-level loop and costs one empty launch when skipped.
+        """
+        self._count(pts, offset, n, self.inv_cell, go)
+        self._scan(go)
+        self._place(n, go)
 
     @ti.kernel
     def build(self, pts: ti.template(), offset: ti.i32, n: ti.i32):

@@ -3,7 +3,7 @@
 Per substep (each pass O(n) in particles or constraints):
 
 1. predict: gravity, pulling forces, damping, kinematic targets (Control) -- O(n)
-2. broad phase: spatial hashes of cloth particles and rope segments -- O(n)
+2. broad phase: spatial hash of rope segments -- O(n)
 3. distance constraints (rods Eq. 2, bending Eq. 3, cloth edges), graph
    coloured Gauss-Seidel: each colour is one parallel loop with disjoint
    writes, so the result does not depend on thread order -- O(m)
@@ -12,8 +12,9 @@ Per substep (each pass O(n) in particles or constraints):
    with the contacts in between (repeats only for chains still off) -- O(n)
 5. rope capsule-capsule collisions (Eq. 5), Jacobi gather -- O(s k), k
    candidates per segment (bounded by the hash cell occupancy)
-6. cloth self-collision, Jacobi gather over the 27 neighbouring cells,
-   rest neighbours excluded -- O(n k)
+6. cloth self-collision, Jacobi gather over per-particle candidate lists
+   (Verlet lists: rebuilt from a spatial hash only when some particle has
+   moved half their skin), rest neighbours excluded -- O(n k)
 7. ground and object contacts with friction (analytic or grid SDF) -- O(n)
 8. velocities from positions -- O(n)
 
@@ -37,10 +38,10 @@ from sandbox.constraints.distance import xpbd_distance
 from sandbox.model.model import Control, Model, State
 from sandbox.solvers.rope_chain import ChainProjection, build_chains
 
-PREDICT, SELF_HASH, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP = range(10)
+PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP = range(10)
 STAGE_NAMES = {
     PREDICT: "predict",
-    SELF_HASH: "cloth_hash",
+    SELF_LISTS: "cloth_lists",
     ROPE_HASH: "rope_hash",
     CONSTRAINTS: "constraints",
     ROPE_COLLIDE: "rope_collision",
@@ -113,8 +114,6 @@ class XPBDSolver:
         groups = build_chains(model.data)
         self.inext = ChainProjection(model, state, self.w, groups, *contact) if groups else None
         pre = [PREDICT]
-        if self.selfcol is not None:
-            pre.append(SELF_HASH)
         if self.ropecol is not None:
             pre.append(ROPE_HASH)
         it = []
@@ -127,7 +126,7 @@ class XPBDSolver:
         if self.ropecol is not None:
             it.append(ROPE_COLLIDE)
         if self.selfcol is not None:
-            it.append(SELF_COLLIDE)
+            it += [SELF_LISTS, SELF_COLLIDE]  # candidate lists checked against the positions the pass sees
         if self.inext is not None:
             for _ in range(int(chain_sweeps) - 1):
                 # Rows and columns (and a chain and the surface it lies on)
@@ -147,7 +146,7 @@ class XPBDSolver:
             post.append(ROPE_INEXT)
         self.stages = tuple(pre + it * self.iterations + post + [VELOCITIES])
         # The same substep without cloth self-collision, for substeps that skip it.
-        self.stages_lite = tuple(s for s in self.stages if s not in (SELF_HASH, SELF_COLLIDE))
+        self.stages_lite = tuple(s for s in self.stages if s not in (SELF_LISTS, SELF_COLLIDE))
         self.self_collision_every = int(self_collision_every)
         self.timings: dict[str, float] = {}
 
@@ -236,8 +235,8 @@ class XPBDSolver:
     def _stage(self, sid: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
         if ti.static(sid == PREDICT):
             self._predict(dt, frac)
-        if ti.static(sid == SELF_HASH):
-            self.selfcol.build_f()
+        if ti.static(sid == SELF_LISTS):
+            self.selfcol.refresh_f()
         if ti.static(sid == ROPE_HASH):
             self.ropecol.build_f()
         if ti.static(sid == CONSTRAINTS):
