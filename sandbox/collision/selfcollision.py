@@ -67,7 +67,7 @@ class ClothSelfCollision:
         gap: (k,) f32, m, smallest distance minus thickness (metrics).
     """
 
-    def __init__(self, model, state, w, start: int, *, skin: float | None = None, capacity: int = 32) -> None:
+    def __init__(self, model, state, w, start: int, *, skin: float | None = None, capacity: int = 128) -> None:
         self.model = model
         self.st = state
         self.wall = w
