@@ -320,17 +320,18 @@ def test_batched_uploads_run_at_the_end_and_catch_early_reads():
 
 def test_closing_a_level_frees_its_field_tree():
     """Load, run and close a level again and again: the process's count of field trees stays put."""
-    root = pathlib.Path(__file__).resolve().parents[1] / "levels"
-    with Sandbox.from_level(root / "rope_wind.yaml", arch="cpu") as sim:
+    # A small level: each load compiles its kernels again.
+    level = ROOT / "tests" / "data" / "levels" / "engine_small.yaml"
+    with Sandbox.from_level(level, arch="cpu") as sim:
         sim.step()
     before = _trees()
     for _ in range(4):
-        with Sandbox.from_level(root / "rope_wind.yaml", arch="cpu") as sim:
+        with Sandbox.from_level(level, arch="cpu") as sim:
             sim.step()
-            x = sim.rope_positions("C")
-            assert np.isfinite(x).all() and x[:, 1].max() > 0.5
+            x = sim.rope_positions("cord")
+            assert np.isfinite(x).all() and x[:, 1].max() > 0.25
         assert _trees() == before
     with pytest.raises(RuntimeError, match="closed"):
         sim.step()
     with pytest.raises(RuntimeError, match="closed"):
-        sim.rope_positions("C")  # a read of freed fields would crash the process
+        sim.rope_positions("cord")  # a read of freed fields would crash the process

@@ -255,7 +255,7 @@ def test_in_process_runs_give_back_their_field_trees(tmp_path):
     from sandbox.runner import RunOptions, run_level
 
     runtime.init("cpu")
-    level = ROOT / "levels" / "rope_wind.yaml"
+    level = LEVEL  # small: each load compiles its kernels again
     run_level(level, RunOptions(out=tmp_path / "a", frames=3, progress=False))
     trees = ti.lang.impl.get_runtime().prog.get_snode_tree_size()
     for k in range(3):
