@@ -88,7 +88,7 @@ class World:
             self.solver = XPBDSolver(
                 self.model, self.state, self.control, gravity=scene.gravity, ground=ground,
                 objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
-                chain_sweeps=sim.chain_sweeps, chain_tolerance=sim.chain_tolerance,
+                chain_sweeps=sim.chain_sweeps, chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts,
             )
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
         # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).

@@ -161,6 +161,16 @@ def test_chain_sweeps_range_and_round_trip():
     assert load_level_from_string(dump_level(level)) == level
 
 
+def test_rope_contacts_choices_and_round_trip():
+    """``sim.rope_contacts`` is average (default) or balanced; anything else lists both; it survives dump and load."""
+    err = only_error(BASE.replace("macros:", "sim: {rope_contacts: mean}\nmacros:"))
+    assert err.path == "sim.rope_contacts" and "average" in err.message and "balanced" in err.message
+    assert load_level_from_string(BASE).sim.rope_contacts == "average"
+    level = load_level_from_string(BASE.replace("macros:", "sim: {rope_contacts: balanced}\nmacros:"))
+    assert level.sim.rope_contacts == "balanced"
+    assert load_level_from_string(dump_level(level)) == level
+
+
 def test_unknown_maneuver_lists_registered_ones():
     """An unknown maneuver name is reported at its `run` line with the registered names."""
     text = BASE.replace("run: lv_wait\n      with: {ticks: 2}", "run: lv_jump\n      with: {ticks: 2}")

@@ -3,7 +3,23 @@
 Segments are binned by midpoint in a hash with cells of (rod length + two
 radii), so every pair that can touch is in the 27 neighbouring cells. Each
 segment gathers the XPBD correction of its own two end points from all its
-contacts (normal push plus Coulomb friction on the contact's slip); each particle then averages what its one or two segments gathered.
+contacts (normal push plus Coulomb friction on the contact's slip).
+
+The pass is a Jacobi step, so a particle touched by several contacts must
+not take each one's full correction. Two ways (``sim.rope_contacts``):
+
+- ``average`` (the default): each particle divides what its one or two
+  segments gathered by its number of contacts. Where the two sides of a
+  contact have different counts, the pair's push is not equal and
+  opposite: its centre of mass moves, a force nothing in the scene exerts.
+  In a tight knot held still by its ends such pushes go round the knot's
+  loops and do net work (README, "Held knots").
+- ``balanced``: the contacts are counted in a first gather, and each
+  contact's correction is scaled by min(1, RELAX / k), k the largest count
+  on its four particles, the same on both sides: every push is equal and
+  opposite (momentum-conserving), and particles add what they gathered.
+  Costs a second gather.
+
 Same-rope pairs must be at least max(2, ceil(1 + 2 radius / rod)) segments
 apart: closer ones share a particle or overlap at rest (thick ropes).
 """
@@ -16,6 +32,12 @@ from sandbox import runtime
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
 from sandbox.constraints.capsule import segment_closest
 
+# Over-relaxation of the balanced contact pass: a contact whose particles
+# have at most k contacts each is scaled by min(1, RELAX / k). The plain
+# Jacobi step (1) left more overlap on wound ropes where it was chosen
+# (README, "Held knots").
+RELAX = 1.5
+
 
 @ti.data_oriented
 class RopeCollision:
@@ -25,12 +47,15 @@ class RopeCollision:
         mid: (s,) vec3 f32, m, segment midpoints (hash keys).
         d0, d1: (s,) vec3 f32, m, corrections gathered for each end.
         c0, c1: (s,) i32, contacts gathered for each end.
+        count: (n,) f32, contacts on each particle (at least 1), this pass
+            (balanced only).
         seg_a, seg_b: (n,) i32, segment starting / ending at each particle (-1).
         gap: (s,) f32, m, min over contacts of distance minus radii (metrics).
     """
 
-    def __init__(self, model, state, w, hit=None, normal=None) -> None:
+    def __init__(self, model, state, w, hit=None, normal=None, balanced: bool = False) -> None:
         self.model = model
+        self.balanced = bool(balanced)
         self.st = state
         self.w = w
         # Optional (n,) contact flag and normal fields: a pushed particle records
@@ -56,6 +81,7 @@ class RopeCollision:
         self.c0 = ti.field(ti.i32, shape=s)
         self.c1 = ti.field(ti.i32, shape=s)
         self.gap = ti.field(ti.f32, shape=s)
+        self.count = ti.field(ti.f32, shape=model.n) if self.balanced else None
         seg_a = -np.ones(model.n, np.int32)
         seg_b = -np.ones(model.n, np.int32)
         seg_a[d.segments[:, 0]] = np.arange(s)
@@ -87,7 +113,9 @@ class RopeCollision:
         return ok
 
     @ti.func
-    def _gather(self, measure: ti.template()):
+    def _gather(self, measure: ti.template(), count: ti.template()):
+        """Per segment: the gap to its nearest neighbour (``measure``), or its
+        contacts per end (``count``), or the scaled corrections of its ends."""
         for s in range(self.s):
             a0 = self.model.segment[s][0]
             a1 = self.model.segment[s][1]
@@ -120,7 +148,12 @@ class RopeCollision:
                             wa0 = self.w[a0] * (1.0 - u)
                             wa1 = self.w[a1] * u
                             wsum = wa0 * (1.0 - u) + wa1 * u + self.w[b0] * (1.0 - v) ** 2 + self.w[b1] * v * v
-                            if wsum > 1e-12:
+                            if ti.static(count) and wsum > 1e-12:
+                                if wa0 > 0.0:
+                                    n0 += 1
+                                if wa1 > 0.0:
+                                    n1 += 1
+                            if ti.static(not count) and wsum > 1e-12:
                                 pen = target - dist
                                 # Coulomb friction on positions: the relative slip of the two
                                 # closest points this substep, less than mu * pen is undone.
@@ -134,6 +167,10 @@ class RopeCollision:
                                 if lt > 1e-12:
                                     fric = -slip_t * ti.min(1.0, mu * pen / lt)
                                 corr = (pen * nrm + fric) / wsum
+                                if ti.static(self.balanced):
+                                    k = ti.max(ti.max(self.count[a0], self.count[a1]),
+                                               ti.max(self.count[b0], self.count[b1]))
+                                    corr *= ti.min(1.0, ti.static(RELAX) / k)
                                 if wa0 > 0.0:
                                     acc0 += wa0 * corr
                                     n0 += 1
@@ -145,6 +182,17 @@ class RopeCollision:
             self.c0[s] = n0
             self.c1[s] = n1
             self.gap[s] = best
+
+    @ti.func
+    def _count(self):
+        """Contacts on each particle (from the counting gather), at least 1."""
+        for i in self.count:
+            cnt = 0
+            if self.seg_a[i] >= 0:
+                cnt += self.c0[self.seg_a[i]]
+            if self.seg_b[i] >= 0:
+                cnt += self.c1[self.seg_b[i]]
+            self.count[i] = ti.max(ti.cast(cnt, ti.f32), 1.0)
 
     @ti.func
     def _apply(self):
@@ -160,7 +208,10 @@ class RopeCollision:
                 acc += self.d1[sb]
                 cnt += self.c1[sb]
             if cnt > 0:
-                self.st.x[i] = self.st.x[i] + acc / ti.cast(cnt, ti.f32)
+                dx = acc
+                if ti.static(not self.balanced):
+                    dx = acc / ti.cast(cnt, ti.f32)
+                self.st.x[i] = self.st.x[i] + dx
                 if ti.static(self.record):
                     la = acc.norm()
                     if la > 1e-12:
@@ -169,15 +220,24 @@ class RopeCollision:
 
     @ti.func
     def solve_f(self):
-        """One Jacobi pass of capsule collisions."""
-        self._gather(False)
+        """One Jacobi pass of capsule collisions (balanced: count the contacts first)."""
+        if ti.static(self.balanced):
+            self._gather(False, True)
+            self._count()
+        self._gather(False, False)
         self._apply()
+
+    @ti.kernel
+    def solve(self):
+        """Bin the segments and run one contact pass, as a kernel of its own (the solver fuses it)."""
+        self.build_f()
+        self.solve_f()
 
     @ti.kernel
     def _measure(self):
         self._midpoints()
         self.grid.build_f(self.mid, 0, self.s)
-        self._gather(True)
+        self._gather(True, False)
 
     def measure(self) -> np.ndarray:
         """Per segment: min capsule distance minus radii sum (m); 1e30 if alone."""

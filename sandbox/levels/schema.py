@@ -117,6 +117,7 @@ Shape = Literal[
     "wine_bottle", "basket", "jeep", "statue", "mesh",
 ]
 Solver = Literal["xpbd", "projection"]
+RopeContacts = Literal["average", "balanced"]
 Arch = Literal["auto", "cpu", "cuda", "vulkan", "metal"]
 Event = Literal["done", "failed", "timeout"]
 
@@ -378,7 +379,10 @@ class Sim(_Model):
     many times each iteration alternates the exact chain step (ropes, cloth
     rows and columns) with the contacts; sweeps after the first re-solve
     only the chains with a rod still off its length by more than
-    ``chain_tolerance`` (relative).
+    ``chain_tolerance`` (relative). ``rope_contacts`` is how the Jacobi rope
+    contact pass shares corrections among a particle's contacts: ``average``
+    (per particle) or ``balanced`` (per contact, equal and opposite; see
+    ``sandbox/collision/ropecollision.py``).
     """
 
     fps: between(int, 1, 1000) = 60
@@ -391,6 +395,7 @@ class Sim(_Model):
     self_collision_every: between(int, 1, 16) = 1
     chain_sweeps: between(int, 1, 16) = 1
     chain_tolerance: between(float, 0.0, 1.0) = 1e-3
+    rope_contacts: RopeContacts = "average"
 
 
 class Budget(_Model):

@@ -65,6 +65,8 @@ class XPBDSolver:
         ground: (height m, friction) or None for no ground.
         objects: an ObjectSet (collision queries) or None.
         iterations: constraint/collision sweeps per substep.
+        rope_contacts: "average" or "balanced", how the Jacobi rope contact
+            pass shares corrections (``ropecollision.py``).
 
     Fields:
         w: (n,) f32, 1/kg, inverse mass for this frame (0 while driven).
@@ -78,7 +80,7 @@ class XPBDSolver:
 
     def __init__(self, model: Model, state: State, control: Control, *, gravity, ground=None, objects=None,
                  iterations: int = 1, self_collision_every: int = 1, chain_sweeps: int = 1,
-                 chain_tolerance: float = 1e-3) -> None:
+                 chain_tolerance: float = 1e-3, rope_contacts: str = "average") -> None:
         self.model = model
         self.st = state
         self.ctl = control
@@ -110,7 +112,8 @@ class XPBDSolver:
         contact = (self.c_hit, self.c_normal) if self.has_contact_normals else (None, None)
         cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
-        self.ropecol = RopeCollision(model, state, self.w, *contact) if model.s >= 3 else None
+        self.ropecol = RopeCollision(model, state, self.w, *contact, balanced=rope_contacts == "balanced") \
+            if model.s >= 3 else None
         groups = build_chains(model.data)
         self.inext = ChainProjection(model, state, self.w, groups, *contact) if groups else None
         pre = [PREDICT]
