@@ -293,3 +293,15 @@ def test_hold_rest_holds_the_end_state_and_records_every_frame(tmp_path, monkeyp
     assert r["energy_last_second"] == pytest.approx(np.mean([f["energy"] for f in r["frames"]]))
     assert r["max_strain"] == max(f["strain"] for f in r["frames"]) and r["retries"] == 0
     assert (tmp_path / "hold.png").stat().st_size > 1000
+
+    import plot_holds
+
+    other = tmp_path / "b" / "hold.json"
+    other.parent.mkdir()
+    r["frames"] = r["frames"][:10]
+    other.write_text(json.dumps(r))
+    out = tmp_path / "holds.png"
+    plot_holds.plot_holds([tmp_path / "hold.json", other], ["a", "b"], out)
+    assert out.stat().st_size > 1000
+    with pytest.raises(ValueError, match="one label per file"):
+        plot_holds.plot_holds([other], ["a", "b"], out)
