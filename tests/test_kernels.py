@@ -350,7 +350,7 @@ def test_self_collision_lists_miss_no_contact():
     assert sc.overflows[None] > 10
 
 
-def _contact_pass_reference(x, w, seg, rope, rad, skip, balanced):
+def _contact_pass_reference(x, w, seg, rope, rad, skip, mode):
     """One rope contact pass in float64 NumPy, brute force over every allowed pair (no slip: no friction)."""
     from sandbox.collision.ropecollision import RELAX
 
@@ -369,24 +369,27 @@ def _contact_pass_reference(x, w, seg, rope, rad, skip, balanced):
     count = np.zeros(len(x))
     np.add.at(count, a0, wa0 > 0)
     np.add.at(count, a1, wa1 > 0)
+    if mode == "split":  # each particle weighs its mass over its count in every contact
+        wsum = (wa0 * (1 - u) * count[a0] + wa1 * u * count[a1]
+                + w[b0] * (1 - v) ** 2 * count[b0] + w[b1] * v**2 * count[b1])
     corr = ((target - dist) / dist / wsum)[:, None] * (c1 - c2)
-    if balanced:
+    if mode == "balanced":
         k = np.maximum(np.maximum(count[a0], count[a1]), np.maximum(count[b0], count[b1]))
         corr *= np.minimum(1.0, RELAX / np.maximum(k, 1.0))[:, None]
     acc = np.zeros_like(x)
     np.add.at(acc, a0, wa0[:, None] * corr * (wa0 > 0)[:, None])
     np.add.at(acc, a1, wa1[:, None] * corr * (wa1 > 0)[:, None])
-    if not balanced:
+    if mode == "average":
         acc /= np.maximum(count, 1.0)[:, None]
     return x + acc, int(hit.sum())
 
 
-@pytest.mark.parametrize("mode", ["average", "balanced"])
+@pytest.mark.parametrize("mode", ["average", "balanced", "split"])
 def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mode):
     """One contact pass on a random tangle of three ropes of different masses, against a NumPy brute force.
 
-    Balanced contacts push each pair equally and oppositely: the momentum sum_i m_i dx_i of the
-    free particles stays zero. Averaged ones do not (the defect the balanced mode removes).
+    Balanced and split contacts push each pair equally and oppositely: the momentum sum_i m_i dx_i
+    of the free particles stays zero. Averaged ones do not (the defect the other modes remove).
     """
     text = ROPES_YAML.replace("radius: 0.015}", "radius: 0.015, mass: 0.02}").replace(
         "radius: 0.025}", "radius: 0.025, mass: 0.3}")
@@ -414,7 +417,7 @@ def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mod
     rod = np.array([r.rod_length for r in data.ropes])
     skip = np.maximum(2, np.ceil(1.0 + 2.0 * np.array([r.radius for r in data.ropes]) / rod - 1e-9))
     want, contacts = _contact_pass_reference(x32.astype(np.float64), w, data.segments, data.segment_rope, rad, skip,
-                                             mode == "balanced")
+                                             mode)
     assert contacts > 50, "too few contacts for the test to mean anything"
     moved = np.abs(want - x32).max()
     assert moved > 1e-3
@@ -423,7 +426,7 @@ def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mod
     dx = got - x32
     momentum = np.linalg.norm((dx / w[:, None]).sum(0))
     scale = (np.linalg.norm(dx, axis=1) / w).sum()
-    if mode == "balanced":
+    if mode in ("balanced", "split"):
         assert momentum < 1e-4 * scale, (momentum, scale)
     else:
         assert momentum > 1e-2 * scale, (momentum, scale)

@@ -161,13 +161,16 @@ def test_chain_sweeps_range_and_round_trip():
     assert load_level_from_string(dump_level(level)) == level
 
 
-def test_rope_contacts_choices_and_round_trip():
-    """``sim.rope_contacts`` is average (default) or balanced; anything else lists both; it survives dump and load."""
+@pytest.mark.parametrize("mode", ["balanced", "split"])
+def test_rope_contacts_choices_and_round_trip(mode):
+    """``sim.rope_contacts`` is average (default), balanced or split; anything else lists all three; it survives
+    dump and load."""
     err = only_error(BASE.replace("macros:", "sim: {rope_contacts: mean}\nmacros:"))
-    assert err.path == "sim.rope_contacts" and "average" in err.message and "balanced" in err.message
+    assert err.path == "sim.rope_contacts"
+    assert all(m in err.message for m in ("average", "balanced", "split"))
     assert load_level_from_string(BASE).sim.rope_contacts == "average"
-    level = load_level_from_string(BASE.replace("macros:", "sim: {rope_contacts: balanced}\nmacros:"))
-    assert level.sim.rope_contacts == "balanced"
+    level = load_level_from_string(BASE.replace("macros:", f"sim: {{rope_contacts: {mode}}}\nmacros:"))
+    assert level.sim.rope_contacts == mode
     assert load_level_from_string(dump_level(level)) == level
 
 

@@ -305,3 +305,31 @@ def test_hold_rest_holds_the_end_state_and_records_every_frame(tmp_path, monkeyp
     assert out.stat().st_size > 1000
     with pytest.raises(ValueError, match="one label per file"):
         plot_holds.plot_holds([other], ["a", "b"], out)
+
+
+def test_sweep_rigid_shift_moves_the_whole_scene_and_the_named_fsm_points():
+    """``sweep_level --rigid``: ropes, objects, cloths, camera and the FSM points named move together;
+    nothing else does, and the shifted level still loads. Criteria on several bodies keep one column each."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from sweep_level import _label, shifted_ropes, shifted_scene
+
+    from sandbox.levels import load_level
+
+    path = ROOT / "levels" / "drafts" / "granny_knot.yaml"
+    base = load_level(path)
+    shift = (0.05, -0.02, 0.3)
+    ov = shifted_scene(path, shift, ["C_TOWARD", "T_TOWARD"])
+    moved = load_level(path, overrides=ov)
+    for a, b in zip(base.scene.ropes, moved.scene.ropes):
+        np.testing.assert_allclose(np.asarray(b.points) - np.asarray(a.points), np.tile(shift, (len(a.points), 1)))
+    np.testing.assert_allclose(np.subtract(moved.scene.objects[0].position, base.scene.objects[0].position), shift)
+    np.testing.assert_allclose(np.subtract(moved.scene.camera.look_at, base.scene.camera.look_at), shift)
+    np.testing.assert_allclose(np.subtract(moved.scene.camera.position, base.scene.camera.position), shift)
+    assert set(k for k in ov if k.startswith("fsm.")) == {"fsm.3.with.C_TOWARD", "fsm.3.with.T_TOWARD"}
+    assert ov["fsm.3.with.C_TOWARD"] == pytest.approx([0.12 + 0.05, 0.95 - 0.02, 0.3])
+    assert moved.scene.objects[0].params == base.scene.objects[0].params
+    # Without --rigid only the ropes move (self_knot-like scenes).
+    assert set(shifted_ropes(path, shift)) == {"scene.ropes.0.points", "scene.ropes.1.points"}
+    assert _label({"metric": "max_strain", "of": "A"}) == "max_strain[A]"
+    assert _label({"metric": "knot", "of": ["A", "B"]}) == "knot[A,B]"
+    assert _label({"metric": "fsm_state", "of": None}) == "fsm_state"

@@ -19,6 +19,12 @@ not take each one's full correction. Two ways (``sim.rope_contacts``):
   on its four particles, the same on both sides: every push is equal and
   opposite (momentum-conserving), and particles add what they gathered.
   Costs a second gather.
+- ``split``: mass splitting. The contacts are counted as for ``balanced``;
+  each contact is then solved as if each of its particles had only its
+  share of its mass (inverse mass times its count), and particles add what
+  they gathered. Every push is equal and opposite, a particle with one
+  contact takes the full projection, and a stack of contacts on one
+  particle closes as a whole instead of at RELAX / k of the rate.
 
 Same-rope pairs must be at least max(2, ceil(1 + 2 radius / rod)) segments
 apart: closer ones share a particle or overlap at rest (thick ropes).
@@ -48,14 +54,19 @@ class RopeCollision:
         d0, d1: (s,) vec3 f32, m, corrections gathered for each end.
         c0, c1: (s,) i32, contacts gathered for each end.
         count: (n,) f32, contacts on each particle (at least 1), this pass
-            (balanced only).
+            (balanced and split only).
         seg_a, seg_b: (n,) i32, segment starting / ending at each particle (-1).
         gap: (s,) f32, m, min over contacts of distance minus radii (metrics).
     """
 
-    def __init__(self, model, state, w, hit=None, normal=None, balanced: bool = False) -> None:
+    def __init__(self, model, state, w, hit=None, normal=None, mode: str = "average") -> None:
+        if mode not in ("average", "balanced", "split"):
+            raise ValueError(f"rope contact mode {mode!r}: use average, balanced or split")
         self.model = model
-        self.balanced = bool(balanced)
+        self.mode = mode
+        self.balanced = mode == "balanced"  # scale each contact by min(1, RELAX / k)
+        self.split = mode == "split"  # each particle weighs its mass / its count in each contact
+        self.counted = mode != "average"  # a counting gather first; particles add what they gather
         self.st = state
         self.w = w
         # Optional (n,) contact flag and normal fields: a pushed particle records
@@ -81,7 +92,7 @@ class RopeCollision:
         self.c0 = ti.field(ti.i32, shape=s)
         self.c1 = ti.field(ti.i32, shape=s)
         self.gap = ti.field(ti.f32, shape=s)
-        self.count = ti.field(ti.f32, shape=model.n) if self.balanced else None
+        self.count = ti.field(ti.f32, shape=model.n) if self.counted else None
         seg_a = -np.ones(model.n, np.int32)
         seg_b = -np.ones(model.n, np.int32)
         seg_a[d.segments[:, 0]] = np.arange(s)
@@ -148,6 +159,10 @@ class RopeCollision:
                             wa0 = self.w[a0] * (1.0 - u)
                             wa1 = self.w[a1] * u
                             wsum = wa0 * (1.0 - u) + wa1 * u + self.w[b0] * (1.0 - v) ** 2 + self.w[b1] * v * v
+                            if ti.static(self.split and not count):
+                                wsum = (wa0 * (1.0 - u) * self.count[a0] + wa1 * u * self.count[a1]
+                                        + self.w[b0] * (1.0 - v) ** 2 * self.count[b0]
+                                        + self.w[b1] * v * v * self.count[b1])
                             if ti.static(count) and wsum > 1e-12:
                                 if wa0 > 0.0:
                                     n0 += 1
@@ -209,7 +224,7 @@ class RopeCollision:
                 cnt += self.c1[sb]
             if cnt > 0:
                 dx = acc
-                if ti.static(not self.balanced):
+                if ti.static(not self.counted):
                     dx = acc / ti.cast(cnt, ti.f32)
                 self.st.x[i] = self.st.x[i] + dx
                 if ti.static(self.record):
@@ -220,8 +235,8 @@ class RopeCollision:
 
     @ti.func
     def solve_f(self):
-        """One Jacobi pass of capsule collisions (balanced: count the contacts first)."""
-        if ti.static(self.balanced):
+        """One Jacobi pass of capsule collisions (balanced, split: count the contacts first)."""
+        if ti.static(self.counted):
             self._gather(False, True)
             self._count()
         self._gather(False, False)

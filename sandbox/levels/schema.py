@@ -117,7 +117,7 @@ Shape = Literal[
     "wine_bottle", "basket", "jeep", "statue", "mesh",
 ]
 Solver = Literal["xpbd", "projection"]
-RopeContacts = Literal["average", "balanced"]
+RopeContacts = Literal["average", "balanced", "split"]
 Arch = Literal["auto", "cpu", "cuda", "vulkan", "metal"]
 Event = Literal["done", "failed", "timeout"]
 
@@ -381,7 +381,8 @@ class Sim(_Model):
     only the chains with a rod still off its length by more than
     ``chain_tolerance`` (relative). ``rope_contacts`` is how the Jacobi rope
     contact pass shares corrections among a particle's contacts: ``average``
-    (per particle) or ``balanced`` (per contact, equal and opposite; see
+    (per particle), ``balanced`` (per contact, equal and opposite) or ``split``
+    (mass splitting: equal and opposite at the full rate; see
     ``sandbox/collision/ropecollision.py``).
     """
 

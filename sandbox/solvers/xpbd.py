@@ -65,7 +65,7 @@ class XPBDSolver:
         ground: (height m, friction) or None for no ground.
         objects: an ObjectSet (collision queries) or None.
         iterations: constraint/collision sweeps per substep.
-        rope_contacts: "average" or "balanced", how the Jacobi rope contact
+        rope_contacts: "average", "balanced" or "split", how the Jacobi rope contact
             pass shares corrections (``ropecollision.py``).
 
     Fields:
@@ -112,7 +112,7 @@ class XPBDSolver:
         contact = (self.c_hit, self.c_normal) if self.has_contact_normals else (None, None)
         cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
-        self.ropecol = RopeCollision(model, state, self.w, *contact, balanced=rope_contacts == "balanced") \
+        self.ropecol = RopeCollision(model, state, self.w, *contact, mode=rope_contacts) \
             if model.s >= 3 else None
         groups = build_chains(model.data)
         self.inext = ChainProjection(model, state, self.w, groups, *contact) if groups else None
