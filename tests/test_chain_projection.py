@@ -309,21 +309,21 @@ def test_a_rope_folding_against_a_box_is_not_thrown():
 
 
 def _granny_draft_shifted(dx: float) -> str:
-    """levels/drafts/granny_knot.yaml with its ropes, box and pull targets moved dx (m) sideways."""
+    """levels/drafts/granny_knot.yaml with its ropes, box, camera and pull targets moved dx (m) sideways."""
     import pathlib
+    import sys
 
     import yaml
 
-    path = pathlib.Path(__file__).resolve().parents[1] / "levels" / "drafts" / "granny_knot.yaml"
+    from sandbox.levels.loader import apply_overrides
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "tools"))
+    from sweep_level import shifted_scene
+
+    path = root / "levels" / "drafts" / "granny_knot.yaml"
     level = yaml.safe_load(path.read_text())
-    for rope in level["scene"]["ropes"]:
-        rope["points"] = [[p[0] + dx, p[1], p[2]] for p in rope["points"]]
-    for obj in level["scene"]["objects"]:
-        obj["position"][0] += dx
-    for step in level["fsm"]:
-        for key, value in step.get("with", {}).items():
-            if key.endswith("_TOWARD"):
-                value[0] += dx
+    apply_overrides(level, shifted_scene(path, (dx, 0.0, 0.0), ["C_TOWARD", "T_TOWARD"]))
     return yaml.safe_dump(level, sort_keys=False)
 
 

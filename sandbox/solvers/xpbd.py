@@ -22,7 +22,12 @@ Steps 3-7 repeat ``iterations`` times. Only the passes the scene needs are
 compiled in (``self.stages``, fixed when the solver is built). A whole
 substep is one fused kernel: every pass is a ``@ti.func`` whose loops stay
 parallel; launching each pass on its own (``profile_substep``) gives the
-per-pass timings at the cost of one launch per pass.
+per-pass timings at the cost of one launch per pass. The fused kernel
+unrolls every iteration, and its compile time grows faster than its length
+(a rope scene at 8 iterations took minutes): past ``FUSE_ITERATIONS`` a
+substep is split into launches instead: the passes before the iterations,
+the iterations in chunks of up to ``FUSE_ITERATIONS``, and the passes
+after them.
 """
 
 import time
@@ -39,6 +44,8 @@ from sandbox.model.model import Control, Model, State
 from sandbox.solvers.rope_chain import ChainProjection, build_chains
 
 PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP = range(10)
+# Most iterations one fused substep kernel unrolls (the shipped levels use 1-4).
+FUSE_ITERATIONS = 4
 STAGE_NAMES = {
     PREDICT: "predict",
     SELF_LISTS: "cloth_lists",
@@ -65,6 +72,9 @@ class XPBDSolver:
         ground: (height m, friction) or None for no ground.
         objects: an ObjectSet (collision queries) or None.
         iterations: constraint/collision sweeps per substep.
+        fuse_iterations: most iterations fused into one substep kernel (None:
+            ``FUSE_ITERATIONS``); more run as several launches (the same passes,
+            in the same order).
         rope_contacts: "average", "balanced" or "split", how the Jacobi rope contact
             pass shares corrections (``ropecollision.py``).
 
@@ -80,7 +90,8 @@ class XPBDSolver:
 
     def __init__(self, model: Model, state: State, control: Control, *, gravity, ground=None, objects=None,
                  iterations: int = 1, self_collision_every: int = 1, chain_sweeps: int = 1,
-                 chain_tolerance: float = 1e-3, rope_contacts: str = "average") -> None:
+                 chain_tolerance: float = 1e-3, rope_contacts: str = "average",
+                 fuse_iterations: int | None = None) -> None:
         self.model = model
         self.st = state
         self.ctl = control
@@ -150,6 +161,18 @@ class XPBDSolver:
         self.stages = tuple(pre + it * self.iterations + post + [VELOCITIES])
         # The same substep without cloth self-collision, for substeps that skip it.
         self.stages_lite = tuple(s for s in self.stages if s not in (SELF_LISTS, SELF_COLLIDE))
+        # Unfused: before; full chunks of `chunk` iterations, then the rest (each with
+        # and without self-collision); after.
+        chunk = max(1, FUSE_ITERATIONS if fuse_iterations is None else int(fuse_iterations))
+        self.fused = self.iterations <= chunk
+        self.chunks = (self.iterations // chunk, self.iterations % chunk)
+        lite_it = [s for s in it if s not in (SELF_LISTS, SELF_COLLIDE)]
+        self.stages_pre = tuple(pre)
+        self.stages_chunk = tuple(it * chunk)
+        self.stages_chunk_lite = tuple(lite_it * chunk)
+        self.stages_rest = tuple(it * self.chunks[1])
+        self.stages_rest_lite = tuple(lite_it * self.chunks[1])
+        self.stages_post = tuple(post + [VELOCITIES])
         self.self_collision_every = int(self_collision_every)
         self.timings: dict[str, float] = {}
 
@@ -259,13 +282,9 @@ class XPBDSolver:
 
     # ----------------------------------------------------------- kernels
     @ti.kernel
-    def _substep_k(self, dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
-        for sid in ti.static(self.stages):
-            self._stage(sid, dt, frac, gh, gmu)
-
-    @ti.kernel
-    def _substep_lite_k(self, dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
-        for sid in ti.static(self.stages_lite):
+    def _run_k(self, stages: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
+        """The passes ``stages`` (a tuple of pass ids) fused into one kernel, one instance per tuple."""
+        for sid in ti.static(stages):
             self._stage(sid, dt, frac, gh, gmu)
 
     @ti.kernel
@@ -323,12 +342,18 @@ class XPBDSolver:
         return self.self_collision_every == 1 or k == substeps - 1 or k % self.self_collision_every == 0
 
     def substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
-        """One fused substep (k of ``substeps``); ``frac`` is how far through the frame it ends."""
+        """One substep (k of ``substeps``); ``frac`` is how far through the frame it ends."""
         gh, gmu = self._ground()
-        if self.stages_lite != self.stages and not self._stages_for(k, substeps):
-            self._substep_lite_k(dt, frac, gh, gmu)
-        else:
-            self._substep_k(dt, frac, gh, gmu)
+        lite = self.stages_lite != self.stages and not self._stages_for(k, substeps)
+        if self.fused:
+            self._run_k(self.stages_lite if lite else self.stages, dt, frac, gh, gmu)
+            return
+        self._run_k(self.stages_pre, dt, frac, gh, gmu)
+        for _ in range(self.chunks[0]):
+            self._run_k(self.stages_chunk_lite if lite else self.stages_chunk, dt, frac, gh, gmu)
+        if self.chunks[1]:
+            self._run_k(self.stages_rest_lite if lite else self.stages_rest, dt, frac, gh, gmu)
+        self._run_k(self.stages_post, dt, frac, gh, gmu)
 
     def profile_substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
         """The same substep, one launch per pass, accumulating ``self.timings`` (ms)."""
