@@ -44,23 +44,42 @@ def shifted_scene(level: pathlib.Path, shift, fsm_points=()) -> dict:
     """Overrides that move the whole scene by ``shift`` (m): ropes, objects, cloths, camera, FSM points.
 
     ``fsm_points`` names the arguments (``with`` keys) of the FSM's top-level
-    states that are absolute points; each one found is moved as well.
+    states that are absolute points; each one found is moved as well. A
+    moving object's keyframe positions move with it.
+
+    Raises:
+        ValueError: for a name in ``fsm_points`` that no top-level state has,
+            or a rope whose pins' motion turns about the world origin (no
+            shift of its keyframes follows the scene).
     """
     data = yaml.safe_load(level.read_text())
     scene = data.get("scene", {})
     out = shifted_ropes(level, shift)
+    for rope in scene.get("ropes", []):
+        frames = (rope.get("motion") or {}).get("keyframes", [])
+        if any(any(float(a) != 0.0 for a in f.get("rotation", [0, 0, 0])) for f in frames):
+            raise ValueError(f"rope {rope.get('name')!r}: its motion turns about the world origin, "
+                             "so a shifted scene cannot follow it; shift without --rigid")
     for k, obj in enumerate(scene.get("objects", [])):
         out[f"scene.objects.{k}.position"] = _moved(obj.get("position", [0, 0, 0]), shift)
+        for j, f in enumerate((obj.get("motion") or {}).get("keyframes", [])):
+            out[f"scene.objects.{k}.motion.keyframes.{j}.position"] = _moved(f["position"], shift)
     for k, cloth in enumerate(scene.get("cloths", [])):
         out[f"scene.cloths.{k}.center"] = _moved(cloth.get("center", [0, 0, 0]), shift)
     for key in ("position", "look_at"):
         if key in scene.get("camera", {}):
             out[f"scene.camera.{key}"] = _moved(scene["camera"][key], shift)
     fsm = data.get("fsm", [])
-    for k, state in enumerate(fsm if isinstance(fsm, list) else []):
-        for name in fsm_points:
-            if isinstance(state, dict) and name in state.get("with", {}):
-                out[f"fsm.{k}.with.{name}"] = _moved(state["with"][name], shift)
+    states = [st for st in (fsm if isinstance(fsm, list) else []) if isinstance(st, dict)]
+    for name in fsm_points:
+        found = [k for k, st in enumerate(fsm) if st in states and name in st.get("with", {})] \
+            if isinstance(fsm, list) else []
+        if not found:
+            have = sorted({key for st in states for key in st.get("with", {})})
+            raise ValueError(f"--shift-args {name!r}: no top-level FSM state has that argument "
+                             f"(they have: {', '.join(have) or 'none'})")
+        for k in found:
+            out[f"fsm.{k}.with.{name}"] = _moved(fsm[k]["with"][name], shift)
     return out
 
 
