@@ -327,6 +327,49 @@ def test_tightening_by_force_toward_a_point_keeps_aiming_at_it():
     assert np.linalg.norm(x[-1] - goal) < np.linalg.norm(start - goal)
 
 
+def test_tightening_by_force_ends_once_the_pull_stalls():
+    """An end that never comes to rest (here: a settle speed no end reaches) is tight once it stops gaining rope."""
+    w = _world(SLACK_PULL.replace("settle_speed: 0.002", "settle_speed: 1.0e-9, stall: 0.002, stall_frames: 30"))
+    man = None
+    for _ in range(900):
+        w.step()
+        if getattr(w.fsm.maneuver, "name", None) == "Tightening":
+            man = w.fsm.maneuver
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    assert man.tight and man.still < man.params.settle_frames  # tight by the stall, not by coming to rest
+    assert man.pulled < 0.5  # and not stopped by the distance
+    x = w.rope_positions("R")
+    length = 0.02 * (len(x) - 1)
+    assert float(np.linalg.norm(x[-1] - x[0])) == pytest.approx(length, rel=0.03)  # as straight as the pull makes it
+
+
+def test_tightening_hold_pull_keeps_pulling_after_it_is_tight():
+    """``hold: pull``: once tight the end stays pulled (not held), so it still gives and takes with the rope."""
+    w = _world(SLACK_PULL.replace("distance: 0.5", "distance: 0.5, hold: pull"))
+    n = len(w.rope_positions("R"))
+    for _ in range(900):
+        w.step()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    assert w.control.is_pulled([n - 1]).all() and not w.control.is_driven([n - 1]).any()
+    end = w.rope_positions("R")[-1].copy()
+    for _ in range(30):
+        w.step()
+    x = w.rope_positions("R")
+    # Still balanced where the pull left it: the same end, within a few mm, and the rope at its length.
+    assert np.linalg.norm(x[-1] - end) < 0.005
+    seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    assert np.abs(seg / 0.02 - 1).max() < 0.01
+
+
+def test_tightening_hold_pull_needs_a_force():
+    with pytest.raises(LevelError, match="hold: pull keeps pulling"):
+        load_level_from_string(SLACK_PULL.replace("force: 1.0, ", "").replace("distance: 0.5", "distance: 0.5, hold: pull"))
+
+
 TOUCHING = """
 version: 1
 name: touching

@@ -411,11 +411,27 @@ class TighteningParams(Params):
     force: Annotated[float, pydantic.Field(gt=0)] | None = None
     settle_speed: Annotated[float, pydantic.Field(gt=0)] = 0.02  # m/s below which a pulled end has stopped
     settle_frames: Annotated[int, pydantic.Field(ge=1)] = 15  # frames every end must stay stopped
+    # With ``force``: also tight once the farthest any end has been pulled has
+    # not grown by ``stall`` m for ``stall_frames`` frames (a tight knot that
+    # jitters never has every end still, but it no longer gives rope).
+    stall: Annotated[float, pydantic.Field(gt=0)] = 0.002
+    stall_frames: Annotated[int, pydantic.Field(ge=1)] = 45
     distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
     max_strain: Annotated[float, pydantic.Field(gt=0)] = 0.003  # rod strain that means "tight"
     max_overlap: Annotated[float, pydantic.Field(gt=0)] = 0.05  # capsule overlap / radius that means "tight"
     backoff: Annotated[float, pydantic.Field(ge=0)] = 0.01  # m each end gives back once tight
     release_others: bool = True  # let go of every other held particle of the knot's ropes first
+    # What the hands do once done, with ``force``: "fixed" holds the ends where
+    # they stopped; "pull" keeps pulling, so the hands' give (the drag) takes up
+    # the energy of a knot that jitters under tension instead of reflecting it.
+    hold: Literal["fixed", "pull"] = "fixed"
+
+    @pydantic.model_validator(mode="after")
+    def _pull_needs_force(self):
+        if self.hold == "pull" and self.force is None:
+            raise ValueError("hold: pull keeps pulling with the Tightening's force: set force (N), "
+                             "or use hold: fixed")
+        return self
 
 
 @register
@@ -437,9 +453,10 @@ class Tightening(Maneuver):
     where the tensions balance (a knot between two held standing parts is
     drawn to the middle rather than to the hand that stops last). It is tight
     when every end has moved slower than ``settle_speed`` for
-    ``settle_frames`` frames (the force, not ``max_strain`` or
+    ``settle_frames`` frames, or when the farthest pull has not grown by
+    ``stall`` for ``stall_frames`` frames (the force, not ``max_strain`` or
     ``max_overlap``, bounds how hard the rope is pulled); the ends are then
-    held where they are.
+    held where they are (``hold: fixed``) or kept pulled (``hold: pull``).
     """
 
     name = "Tightening"
@@ -478,6 +495,8 @@ class Tightening(Maneuver):
         self.pulled = 0.0
         self.tight = False
         self.still = 0  # frames in a row that every pulled end has been still (force mode)
+        self.best = 0.0  # farthest pulled so far, and frames since it last grew by ``stall`` (force mode)
+        self.stalled = 0
         self.last_pos = [pos for _, pos, _ in self.ends]
 
     def _knot_centre(self, x: np.ndarray) -> np.ndarray:
@@ -528,11 +547,16 @@ class Tightening(Maneuver):
             if q.toward is not None:  # the pull turns to keep pointing at its point
                 self._pull(idx, _unit(np.asarray(q.toward, float) - a, _UP))
         self.still = self.still + 1 if speed < p.settle_speed else 0
+        if self.pulled > self.best + p.stall:
+            self.best, self.stalled = self.pulled, 0
+        else:
+            self.stalled += 1
         self.progress = min(self.pulled / p.distance, 1.0)
         # The force bounds the tension: the knot is as tight as this pull makes it once the ends stop.
-        tight = self.still >= p.settle_frames
+        tight = self.still >= p.settle_frames or self.stalled >= p.stall_frames
         if tight or self.pulled >= p.distance:
-            self._hold_ends(x)
+            if p.hold == "fixed":
+                self._hold_ends(x)
             self.tight = tight
             self.progress = 1.0
             return Status.DONE
