@@ -694,3 +694,61 @@ def test_self_knot_ties_a_trefoil_wherever_the_rope_hangs():
         s = _run("self_knot.yaml", shifted_ropes(ROOT / "levels" / "self_knot.yaml", shift))
         tied += next(c["value"] for c in s["criteria"] if c["metric"] == "knot") == "trefoil_left"
     assert tied >= 3, tied
+
+
+def test_tightening_push_moves_the_wound_part_toward_its_point_and_lets_go():
+    """``push``: while the end is pulled, a hand pushes the last wound part toward a point (paper Table 3,
+    a Tightening "towards" a place) no faster than its speed, and lets go when the Tightening ends.
+
+    The rope hangs in the plane z = 0 and is pulled along x: nothing but the push moves it along z.
+    """
+    w = _world(SLACK_PULL.replace("distance: 0.5", "distance: 0.5,\n push: {toward: [0.0, 0.4, 0.3], force: 0.2, speed: 0.05}"))
+    while w.fsm.state != "1:Wait":
+        w.step()
+    n = len(w.rope_positions("R"))
+    wound = np.arange(n // 2 - 2, n // 2 + 3)
+    w.windings = {("R", "R"): {"particles": wound, "x_hat": np.array([1.0, 0.0, 0.0])}}
+    while w.fsm.state != "2:Tightening":
+        w.step()
+    z0 = w.positions()[wound, 2].mean()
+    pushed, top, far = [], 0.0, 0.0
+    while not w.fsm.finished:
+        w.step()
+        pushed.append(bool(w.control.is_pulled(wound).all()))
+        z = w.positions()[wound, 2].mean()
+        if pushed[-1]:
+            top, far = max(top, (z - z0) * 60), max(far, z)
+        z0 = z
+    assert w.fsm.succeeded, w.fsm.events
+    assert pushed[0]
+    let_go = pushed.index(False) if False in pushed else len(pushed)
+    assert all(pushed[:let_go]) and not any(pushed[let_go:])  # pushed until it stops closing, then let go
+    assert not w.control.is_pulled(wound).any() and not w.control.is_driven(wound).any()  # let go at the end
+    x = w.rope_positions("R")
+    assert far > 0.02  # pushed out of the rope's plane, toward z = 0.3
+    assert 0.0 < top <= 0.05 * 1.05  # never pushed faster than force / drag
+    seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    assert np.abs(seg / 0.02 - 1).max() < 0.01
+
+
+def test_tightening_push_needs_windings_to_push():
+    """A push with no wound part of the knot's strands fails at once and says why."""
+    w = _world(SLACK_PULL.replace("distance: 0.5", "distance: 0.5, push: {toward: knot, force: 0.1}"))
+    while not w.fsm.finished:
+        w.step()
+    assert not w.fsm.succeeded
+    assert any("push needs a winding" in str(e) for e in w.fsm.events), w.fsm.events
+
+
+@pytest.mark.parametrize("clearance", [0.1, 0.3])
+def test_winding_clearance_sets_the_tube_its_targets_lie_on(clearance):
+    """The targets lie on the bounding tube R = (1 + clearance)(r_C + r_T) around T's axis (straight here)."""
+    text = (ROOT / "levels" / "rope_wind.yaml").read_text()
+    text = text.replace("handedness: 1}, timeout: 150}", f"handedness: 1, clearance: {clearance}}}, timeout: 150}}")
+    w = _world(text)
+    while w.fsm.state != "1:Winding":
+        w.step()
+    m = w.fsm._maneuver
+    assert m.R == pytest.approx((1 + clearance) * (0.005 + 0.01))
+    g = m.targets[: m.n_turns]
+    np.testing.assert_allclose(np.hypot(g[:, 1] - 0.5, g[:, 2]), m.R, rtol=1e-2)  # T sags by under 0.1 mm

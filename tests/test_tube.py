@@ -35,8 +35,11 @@ def normal_at(tube, x):
 def test_tube_radius_adds_ten_percent_clearance():
     """R = r_C + r_T + 0.1 (r_C + r_T), and invalid radii are rejected."""
     assert tube_radius(0.01, 0.02) == pytest.approx(0.033)
+    assert tube_radius(0.01, 0.02, clearance=0.25) == pytest.approx(0.0375)
     with pytest.raises(ValueError):
         tube_radius(-0.01, 0.02)
+    with pytest.raises(ValueError, match="clearance"):
+        tube_radius(0.01, 0.02, clearance=0.0)
 
 
 @pytest.mark.parametrize("handedness", [1, -1])

@@ -48,16 +48,19 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-def tube_radius(r_c: float, r_t: float) -> float:
-    """Bounding-tube radius R = r_C + r_T + eps with eps = 0.1 (r_C + r_T), in m.
+def tube_radius(r_c: float, r_t: float, clearance: float = 0.1) -> float:
+    """Bounding-tube radius R = r_C + r_T + eps with eps = clearance (r_C + r_T), in m.
 
     Args:
         r_c: radius of the active rope C, m.
         r_t: radius of the target rope T, m.
+        clearance: eps over r_C + r_T (the paper's 0.1).
     """
     if r_c < 0.0 or r_t < 0.0 or r_c + r_t <= 0.0:
         raise ValueError(f"rope radii must be >= 0 with a positive sum, got {r_c}, {r_t}")
-    return 1.1 * (r_c + r_t)
+    if clearance <= 0.0:
+        raise ValueError(f"clearance must be > 0, got {clearance}")
+    return (1.0 + clearance) * (r_c + r_t)
 
 
 def _rmf_double_reflection(x: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -400,8 +400,19 @@ class Kept(Params):
     sites: Annotated[list[Site], pydantic.Field(min_length=1)]
 
 
+class Push(Params):
+    """A hand that pushes the knot's last wound part toward a place while the ends are pulled
+    (paper Table 3: a Tightening goes "towards" the object's centre, or towards the half knot
+    tied before, so that the second half knot closes onto the first)."""
+
+    toward: Vec3 | Literal["knot"]  # a point (m), or "knot": the parts of these strands wound before
+    force: Annotated[float, pydantic.Field(gt=0)]  # N, spread over the wound particles
+    speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s the wound part moves at most under it
+
+
 class TighteningParams(Params):
     pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]
+    push: Push | None = None
     keep: list[Kept] = []  # held sites that ``release_others`` does not let go
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
@@ -492,12 +503,67 @@ class Tightening(Maneuver):
                 w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
             else:
                 self._pull(idx, d)
+        self.pushed = self._start_push(x)
+        self.push_best, self.push_stalled = np.inf, 0  # closest the pushed part has come to its goal
         self.pulled = 0.0
         self.tight = False
         self.still = 0  # frames in a row that every pulled end has been still (force mode)
         self.best = 0.0  # farthest pulled so far, and frames since it last grew by ``stall`` (force mode)
         self.stalled = 0
         self.last_pos = [pos for _, pos, _ in self.ends]
+
+    def _records(self) -> list[dict]:
+        """Winding records (oldest first) that wound or were wound by one of the knot's ropes."""
+        names = {base_name(s.name) for s in self.strands}
+        rec = getattr(self.world, "windings", {})
+        return [v for (c, t), v in rec.items()
+                if (base_name(c) in names or base_name(t) in names) and len(np.atleast_1d(v["particles"]))]
+
+    def _start_push(self, x: np.ndarray) -> np.ndarray:
+        """The wound particles the ``push`` hand pushes (none without ``push``)."""
+        p = self.params
+        if p.push is None:
+            return np.zeros(0, np.int64)
+        rec = self._records()
+        if not rec or (p.push.toward == "knot" and len(rec) < 2):
+            need = "two windings (one to push, one to push it onto)" if rec else "a winding"
+            self.message = (f"push needs {need} of the knot's strands {[s.name for s in self.strands]} "
+                            f"before this Tightening; found {len(rec)}")
+            return np.zeros(0, np.int64)
+        ends = np.concatenate([idx for idx, _, _ in self.ends])
+        idx = np.atleast_1d(rec[-1]["particles"]).astype(np.int64)
+        idx = idx[~np.isin(idx, ends)]
+        self._push_toward(x, idx)
+        return idx
+
+    def _push_goal(self, x: np.ndarray) -> np.ndarray:
+        push = self.params.push
+        if push.toward != "knot":
+            return np.asarray(push.toward, float)
+        return np.vstack([x[np.atleast_1d(v["particles"])] for v in self._records()[:-1]]).mean(axis=0)
+
+    def _push_toward(self, x: np.ndarray, idx: np.ndarray) -> None:
+        """Push particles ``idx`` with ``push.force`` in all toward the push's goal."""
+        push = self.params.push
+        if not len(idx):
+            return
+        d = _unit(self._push_goal(x) - x[idx].mean(axis=0), -_UP)
+        self.world.control.pull(idx, np.repeat((push.force / len(idx)) * d[None], len(idx), axis=0),
+                                push.force / push.speed / len(idx))
+
+    def _update_push(self, x: np.ndarray) -> None:
+        """Keep pushing until the pushed part stops closing on its goal (by ``stall`` in ``stall_frames``)."""
+        p = self.params
+        gap = float(np.linalg.norm(self._push_goal(x) - x[self.pushed].mean(axis=0)))
+        if gap < self.push_best - p.stall:
+            self.push_best, self.push_stalled = gap, 0
+        else:
+            self.push_stalled += 1
+        if self.push_stalled >= p.stall_frames:  # as close as the push brings it: the hand lets go
+            self.world.control.release(self.pushed)
+            self.pushed = np.zeros(0, np.int64)
+        else:
+            self._push_toward(x, self.pushed)
 
     def _knot_centre(self, x: np.ndarray) -> np.ndarray:
         rec = getattr(self.world, "windings", {})
@@ -565,7 +631,11 @@ class Tightening(Maneuver):
     def update(self) -> Status:
         p, w = self.params, self.world
         self.ticks += 1
+        if self.message:
+            return Status.FAILED
         x = w.positions().astype(np.float64)
+        if len(self.pushed):
+            self._update_push(x)
         strain, overlap = self._tension(x)
         self.last = (strain, overlap)
         if p.force is not None:
@@ -591,6 +661,12 @@ class Tightening(Maneuver):
             w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
         self.progress = self.pulled / p.distance
         return Status.RUNNING
+
+    def stop(self) -> None:
+        """The pushing hand lets go once the knot is tight (the pulled ends stay as ``hold`` says)."""
+        pushed = getattr(self, "pushed", np.zeros(0, np.int64))
+        if len(pushed):
+            self.world.control.release(pushed)
 
     def metrics(self) -> dict[str, float]:
         s, o = getattr(self, "last", (0.0, 0.0))

@@ -51,6 +51,10 @@ class WindingParams(Params):
     # Hold C's crossing particle for the whole winding (a hand pinching the
     # crossing), so that the turns cannot slide along T while they are laid.
     pinch: bool = False
+    # eps of the bounding tube over r_C + r_T (paper: 0.1). The rods between
+    # two targets on G cut inside the tube by up to R - sqrt(R^2 - l^2 / 4)
+    # (1 mm for 6 mm ropes and 1 cm rods): a taut turn then presses T by that much.
+    clearance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.1
 
 
 @register
@@ -66,7 +70,7 @@ class Winding(Maneuver):
         p, w = self.params, self.world
         self.c = w._rope(p.active)
         self.t = w._rope(p.target)
-        self.R = tube_radius(self.c.radius, self.t.radius)
+        self.R = tube_radius(self.c.radius, self.t.radius, p.clearance)
         xc = w.rope_positions(p.active)
         xt = w.rope_positions(p.target)
         if p.start == "nearest":
