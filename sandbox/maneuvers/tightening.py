@@ -1,0 +1,308 @@
+"""Tightening: pull a knot's ends apart until it is tight (paper §4, step 4; Table 3).
+
+The hands either move the ends along set paths until a rod stretches or two
+capsules press past a bound, or pull them with a force and a drag (a hand's
+give) until they stop gaining rope. A second hand may push the knot's last
+wound part toward a place while they pull (the paper's "towards": the
+object's centre, or the half knot tied before).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+import pydantic
+
+from sandbox.maneuvers.base import Maneuver, Params, Status, register
+from sandbox.maneuvers.knotting import _UP, Site, Vec3, _unit
+from sandbox.model.strands import base_name
+
+
+class Pull(Params):
+    """One end pulled by Tightening: a site of a rope or strand and where it goes."""
+
+    body: str
+    site: Site = "end"
+    direction: Vec3 | Literal["away"] = "away"  # "away": from the knot's centre
+    toward: Vec3 | None = None  # m: pull toward this point instead (overrides ``direction``)
+
+
+class Kept(Params):
+    """Sites that a Tightening keeps holding (standing ends held by a hand, an object or the cloth)."""
+
+    body: str
+    sites: Annotated[list[Site], pydantic.Field(min_length=1)]
+
+
+class Push(Params):
+    """A hand that pushes the knot's last wound part toward a place while the ends are pulled
+    (paper Table 3: a Tightening goes "towards" the object's centre, or towards the half knot
+    tied before, so that the second half knot closes onto the first)."""
+
+    toward: Vec3 | Literal["knot"]  # a point (m), or "knot": the parts of these strands wound before
+    force: Annotated[float, pydantic.Field(gt=0)]  # N, spread over the wound particles
+    speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s the wound part moves at most under it
+
+
+class TighteningParams(Params):
+    pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]
+    push: Push | None = None
+    keep: list[Kept] = []  # held sites that ``release_others`` does not let go
+    knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
+    speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
+    # N: pull each end with this force instead of moving it; ``speed`` is then
+    # its top speed (drag force / speed). The knot settles where the tensions
+    # balance, and is tight when the ends stop.
+    force: Annotated[float, pydantic.Field(gt=0)] | None = None
+    settle_speed: Annotated[float, pydantic.Field(gt=0)] = 0.02  # m/s below which a pulled end has stopped
+    settle_frames: Annotated[int, pydantic.Field(ge=1)] = 15  # frames every end must stay stopped
+    # With ``force``: also tight once the farthest any end has been pulled has
+    # not grown by ``stall`` m for ``stall_frames`` frames (a tight knot that
+    # jitters never has every end still, but it no longer gives rope).
+    stall: Annotated[float, pydantic.Field(gt=0)] = 0.002
+    stall_frames: Annotated[int, pydantic.Field(ge=1)] = 45
+    distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
+    max_strain: Annotated[float, pydantic.Field(gt=0)] = 0.003  # rod strain that means "tight"
+    max_overlap: Annotated[float, pydantic.Field(gt=0)] = 0.05  # capsule overlap / radius that means "tight"
+    backoff: Annotated[float, pydantic.Field(ge=0)] = 0.01  # m each end gives back once tight
+    release_others: bool = True  # let go of every other held particle of the knot's ropes first
+    # What the hands do once done, with ``force``: "fixed" holds the ends where
+    # they stopped; "pull" keeps pulling, so the hands' give (the drag) takes up
+    # the energy of a knot that jitters under tension instead of reflecting it.
+    hold: Literal["fixed", "pull"] = "fixed"
+
+    @pydantic.model_validator(mode="after")
+    def _pull_needs_force(self):
+        if self.hold == "pull" and self.force is None:
+            raise ValueError("hold: pull keeps pulling with the Tightening's force: set force (N), "
+                             "or use hold: fixed")
+        return self
+
+
+@register
+class Tightening(Maneuver):
+    """Pull ends apart until the knot is tight (paper §4, step 4).
+
+    Every other held particle of the knot's ropes is let go first (the last
+    wound particle a Winding keeps, hands that held the bottoms), except the
+    sites in ``keep`` (standing ends that an object or the cloth holds). Each pulled
+    site then moves along its direction at ``speed``. The knot is tight
+    when pulling more would stretch a rod by more than ``max_strain`` or press
+    two rope capsules into each other by more than ``max_overlap`` of a
+    radius: collisions stay hard, so the ends give back ``backoff`` and are
+    held there. Done when tight or after ``distance``.
+
+    With ``force`` the hands pull instead of moving: each end stays dynamic
+    and feels ``force`` newtons along its direction and a drag that keeps it
+    below ``speed`` (a hand's give), so the knot slides to
+    where the tensions balance (a knot between two held standing parts is
+    drawn to the middle rather than to the hand that stops last). It is tight
+    when every end has moved slower than ``settle_speed`` for
+    ``settle_frames`` frames, or when the farthest pull has not grown by
+    ``stall`` for ``stall_frames`` frames (the force, not ``max_strain`` or
+    ``max_overlap``, bounds how hard the rope is pulled); the ends are then
+    held where they are (``hold: fixed``) or kept pulled (``hold: pull``).
+    """
+
+    name = "Tightening"
+    Params = TighteningParams
+
+    def start(self) -> None:
+        p, w = self.params, self.world
+        x = w.positions().astype(np.float64)
+        names = p.knot or [q.body for q in p.pulls]
+        self.strands = [w._rope(n) for n in dict.fromkeys(names)]
+        self.centre = self._knot_centre(x)
+        if p.release_others:
+            pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls]
+                                    + [w.site_particles(k.body, s) for k in p.keep for s in k.sites])
+            for st in self.strands:
+                whole = w._rope(base_name(st.name))
+                idx = np.arange(whole.start, whole.end)
+                held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
+                if len(held):
+                    w.control.release(held)
+        self.ends = []
+        for q in p.pulls:
+            idx = w.site_particles(q.body, q.site)
+            pos = x[idx].mean(axis=0)
+            if q.toward is not None:
+                d = _unit(np.asarray(q.toward, float) - pos, _UP)
+            elif q.direction == "away":
+                d = _unit(pos - self.centre, _UP)
+            else:
+                d = _unit(np.asarray(q.direction, float), _UP)
+            self.ends.append((idx, pos, d))
+            if p.force is None:
+                w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+            else:
+                self._pull(idx, d)
+        self.pushed = self._start_push(x)
+        self.push_best, self.push_stalled = np.inf, 0  # closest the pushed part has come to its goal
+        self.pulled = 0.0
+        self.tight = False
+        self.still = 0  # frames in a row that every pulled end has been still (force mode)
+        self.best = 0.0  # farthest pulled so far, and frames since it last grew by ``stall`` (force mode)
+        self.stalled = 0
+        self.last_pos = [pos for _, pos, _ in self.ends]
+
+    def _records(self) -> list[dict]:
+        """Winding records (oldest first) that wound or were wound by one of the knot's ropes."""
+        names = {base_name(s.name) for s in self.strands}
+        rec = getattr(self.world, "windings", {})
+        return [v for (c, t), v in rec.items()
+                if (base_name(c) in names or base_name(t) in names) and len(np.atleast_1d(v["particles"]))]
+
+    def _start_push(self, x: np.ndarray) -> np.ndarray:
+        """The wound particles the ``push`` hand pushes (none without ``push``)."""
+        p = self.params
+        if p.push is None:
+            return np.zeros(0, np.int64)
+        rec = self._records()
+        if not rec or (p.push.toward == "knot" and len(rec) < 2):
+            need = "two windings (one to push, one to push it onto)" if rec else "a winding"
+            self.message = (f"push needs {need} of the knot's strands {[s.name for s in self.strands]} "
+                            f"before this Tightening; found {len(rec)}")
+            return np.zeros(0, np.int64)
+        ends = np.concatenate([idx for idx, _, _ in self.ends])
+        idx = np.atleast_1d(rec[-1]["particles"]).astype(np.int64)
+        idx = idx[~np.isin(idx, ends)]
+        self._push_toward(x, idx)
+        return idx
+
+    def _push_goal(self, x: np.ndarray) -> np.ndarray:
+        push = self.params.push
+        if push.toward != "knot":
+            return np.asarray(push.toward, float)
+        return np.vstack([x[np.atleast_1d(v["particles"])] for v in self._records()[:-1]]).mean(axis=0)
+
+    def _push_toward(self, x: np.ndarray, idx: np.ndarray) -> None:
+        """Push particles ``idx`` with ``push.force`` in all toward the push's goal."""
+        push = self.params.push
+        if not len(idx):
+            return
+        d = _unit(self._push_goal(x) - x[idx].mean(axis=0), -_UP)
+        self.world.control.pull(idx, np.repeat((push.force / len(idx)) * d[None], len(idx), axis=0),
+                                push.force / push.speed / len(idx))
+
+    def _update_push(self, x: np.ndarray) -> None:
+        """Keep pushing until the pushed part stops closing on its goal (by ``stall`` in ``stall_frames``)."""
+        p = self.params
+        gap = float(np.linalg.norm(self._push_goal(x) - x[self.pushed].mean(axis=0)))
+        if gap < self.push_best - p.stall:
+            self.push_best, self.push_stalled = gap, 0
+        else:
+            self.push_stalled += 1
+        if self.push_stalled >= p.stall_frames:  # as close as the push brings it: the hand lets go
+            self.world.control.release(self.pushed)
+            self.pushed = np.zeros(0, np.int64)
+        else:
+            self._push_toward(x, self.pushed)
+
+    def _knot_centre(self, x: np.ndarray) -> np.ndarray:
+        rec = getattr(self.world, "windings", {})
+        parts = [x[v["particles"]] for v in rec.values() if len(v["particles"])]
+        if parts:
+            return np.vstack(parts).mean(axis=0)
+        return np.vstack([x[s.start:s.end] for s in self.strands]).mean(axis=0)
+
+    def _tension(self, x: np.ndarray) -> tuple[float, float]:
+        """Largest rod strain and capsule overlap / radius of the knot's ropes now."""
+        strain = 0.0
+        for s in self.strands:
+            seg = np.linalg.norm(np.diff(x[s.start:s.end], axis=0), axis=1)
+            strain = max(strain, float(np.abs(seg / s.rod_length - 1.0).max()))
+        overlap = 0.0
+        rc = self.world.solver.ropecol
+        if rc is not None:
+            gap = rc.measure()
+            seg_rope = self.world.data.segment_rope
+            names = [r.name for r in self.world.data.ropes]
+            for s in self.strands:
+                base = base_name(s.name)
+                g = gap[seg_rope == names.index(base)]
+                if len(g):
+                    overlap = max(overlap, float(-g.min()) / s.radius)
+        return strain, overlap
+
+    def _hold_ends(self, x: np.ndarray) -> None:
+        """Hold every pulled end where it is now."""
+        for idx, _, _ in self.ends:
+            self.world.control.drive(idx, x[idx])
+
+    def _pull(self, idx: np.ndarray, d: np.ndarray) -> None:
+        """Pull particles ``idx`` along unit ``d`` with ``force`` in all, at most at ``speed``."""
+        p = self.params
+        self.world.control.pull(idx, np.repeat((p.force / len(idx)) * d[None], len(idx), axis=0),
+                                p.force / p.speed / len(idx))
+
+    def _update_pulling(self, x: np.ndarray) -> Status:
+        """Force mode: watch the ends until they stop, then hold them."""
+        p, w = self.params, self.world
+        now = [x[idx].mean(axis=0) for idx, _, _ in self.ends]
+        speed = max(float(np.linalg.norm(a - b)) * w.fps for a, b in zip(now, self.last_pos))
+        self.last_pos = now
+        self.pulled = max(float(np.linalg.norm(a - pos)) for a, (_, pos, _) in zip(now, self.ends))
+        for q, a, (idx, _, _) in zip(p.pulls, now, self.ends):
+            if q.toward is not None:  # the pull turns to keep pointing at its point
+                self._pull(idx, _unit(np.asarray(q.toward, float) - a, _UP))
+        self.still = self.still + 1 if speed < p.settle_speed else 0
+        if self.pulled > self.best + p.stall:
+            self.best, self.stalled = self.pulled, 0
+        else:
+            self.stalled += 1
+        self.progress = min(self.pulled / p.distance, 1.0)
+        # The force bounds the tension: the knot is as tight as this pull makes it once the ends stop.
+        tight = self.still >= p.settle_frames or self.stalled >= p.stall_frames
+        if tight or self.pulled >= p.distance:
+            if p.hold == "fixed":
+                self._hold_ends(x)
+            self.tight = tight
+            self.progress = 1.0
+            return Status.DONE
+        return Status.RUNNING
+
+    def update(self) -> Status:
+        p, w = self.params, self.world
+        self.ticks += 1
+        if self.message:
+            return Status.FAILED
+        x = w.positions().astype(np.float64)
+        if len(self.pushed):
+            self._update_push(x)
+        strain, overlap = self._tension(x)
+        self.last = (strain, overlap)
+        if p.force is not None:
+            return self._update_pulling(x)
+        step = p.speed / w.fps
+        if strain > p.max_strain or overlap > p.max_overlap:
+            # Tight: give back ``backoff`` and hold the ends there, so that a
+            # taut rope does not keep grinding its contacts.
+            back = min(step + p.backoff, self.pulled)
+            self.ends = [(idx, pos - back * d, d) for idx, pos, d in self.ends]
+            for idx, pos, _ in self.ends:
+                w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+            self.tight = True
+            self.progress = 1.0
+            return Status.DONE
+        if self.pulled >= p.distance:
+            self.progress = 1.0
+            return Status.DONE
+        step = min(step, p.distance - self.pulled)
+        self.pulled += step
+        self.ends = [(idx, pos + step * d, d) for idx, pos, d in self.ends]
+        for idx, pos, _ in self.ends:
+            w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
+        self.progress = self.pulled / p.distance
+        return Status.RUNNING
+
+    def stop(self) -> None:
+        """The pushing hand lets go once the knot is tight (the pulled ends stay as ``hold`` says)."""
+        pushed = getattr(self, "pushed", np.zeros(0, np.int64))
+        if len(pushed):
+            self.world.control.release(pushed)
+
+    def metrics(self) -> dict[str, float]:
+        s, o = getattr(self, "last", (0.0, 0.0))
+        return {"pulled": self.pulled, "strain": s, "overlap": o, "tight": float(self.tight)}
