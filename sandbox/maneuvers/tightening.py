@@ -182,9 +182,7 @@ class Tightening(Maneuver):
         push = self.params.push
         if not len(idx):
             return
-        d = _unit(self._push_goal(x) - x[idx].mean(axis=0), -_UP)
-        self.world.control.pull(idx, np.repeat((push.force / len(idx)) * d[None], len(idx), axis=0),
-                                push.force / push.speed / len(idx))
+        self._hand(idx, _unit(self._push_goal(x) - x[idx].mean(axis=0), -_UP), push.force, push.speed)
 
     def _update_push(self, x: np.ndarray) -> None:
         """Keep pushing until the pushed part stops closing on its goal (by ``stall`` in ``stall_frames``)."""
@@ -233,9 +231,12 @@ class Tightening(Maneuver):
 
     def _pull(self, idx: np.ndarray, d: np.ndarray) -> None:
         """Pull particles ``idx`` along unit ``d`` with ``force`` in all, at most at ``speed``."""
-        p = self.params
-        self.world.control.pull(idx, np.repeat((p.force / len(idx)) * d[None], len(idx), axis=0),
-                                p.force / p.speed / len(idx))
+        self._hand(idx, d, self.params.force, self.params.speed)
+
+    def _hand(self, idx: np.ndarray, d: np.ndarray, force: float, speed: float) -> None:
+        """A hand on particles ``idx``: ``force`` N in all along unit ``d``, and a drag that keeps them below ``speed`` m/s."""
+        self.world.control.pull(idx, np.repeat((force / len(idx)) * d[None], len(idx), axis=0),
+                                force / speed / len(idx))
 
     def _update_pulling(self, x: np.ndarray) -> Status:
         """Force mode: watch the ends until they stop, then hold them."""
