@@ -15,6 +15,7 @@ from sandbox.geometry.knots import (
     identify_knot,
     identify_two_ropes,
     linking_number,
+    touch_extent,
 )
 from sandbox.geometry.winding import gauss_linking
 
@@ -327,3 +328,45 @@ def test_linking_number_of_two_open_ropes():
     assert linking_number(a, b) == ring_lk
     assert linking_number(a[::-1], b) == -ring_lk
     assert linking_number(a, b + [5.0, 0, 0]) == 0
+
+
+def _line(p0, p1, n):
+    return np.linspace(p0, p1, n)
+
+
+def test_touch_extent_of_ropes_side_by_side_is_the_stretch_they_share():
+    r = 0.006
+    a = _line([0.0, 0.0, 0.0], [0.3, 0.0, 0.0], 31)
+    b = np.vstack([_line([0.05, 0.1, 0.0], [0.05, 2 * r, 0.0], 10), _line([0.06, 2 * r, 0.0], [0.14, 2 * r, 0.0], 9),
+                   _line([0.15, 2 * r, 0.0], [0.15, 0.1, 0.0], 10)])
+    # they touch from x = 0.05 to x = 0.15, and nowhere else
+    assert touch_extent(a, b, radius=r) == pytest.approx(0.10, abs=1e-9)
+    assert touch_extent(a, b + [0.0, 0.1, 0.0], radius=r) == 0.0
+
+
+def test_touch_extent_of_a_single_crossing_is_about_a_diameter():
+    r = 0.006
+    a = _line([-0.2, 0.0, 0.0], [0.2, 0.0, 0.0], 41)
+    b = _line([0.0, -0.2, 2 * r], [0.0, 0.2, 2 * r], 41)
+    assert touch_extent(a, b, radius=r) <= 2.5 * r * 2
+
+
+def test_touch_extent_of_one_rope_ignores_its_bends_and_sees_its_crossings():
+    r = 0.006
+    t = np.linspace(0, 1.5 * np.pi, 200)
+    arc = np.c_[0.05 * np.cos(t), 0.05 * np.sin(t), 0 * t]   # bent all along, touches itself nowhere
+    assert touch_extent(arc, radius=r) == 0.0
+    u = np.linspace(-0.5, 0.5, 101)   # a hairpin: two legs 2r apart over 0.3 m, joined by a tight bend
+    leg = np.c_[u * 0.3 + 0.15, 0 * u, 0 * u]
+    bend = np.c_[0.3 + r * np.sin(np.linspace(0, np.pi, 8)), r - r * np.cos(np.linspace(0, np.pi, 8)), 0 * np.arange(8)]
+    hairpin = np.vstack([leg, bend, (leg + [0, 2 * r, 0])[::-1]])
+    assert touch_extent(hairpin, radius=r) == pytest.approx(0.3, abs=0.03)
+
+
+def test_touch_extent_does_not_depend_on_pose():
+    rng = np.random.default_rng(4)
+    a, b = two_ropes()
+    e = touch_extent(a, b, radius=0.4)
+    assert e > 0.0
+    rot = Rotation.random(random_state=rng).as_matrix()
+    assert touch_extent(a @ rot.T + 1.0, b @ rot.T + 1.0, radius=0.4) == pytest.approx(e, rel=1e-9)

@@ -36,6 +36,7 @@ __all__ = [
     "identify_knot",
     "identify_two_ropes",
     "linking_number",
+    "touch_extent",
 ]
 
 CLOSURE_MODES = ("blend", "tangent", "radial")
@@ -421,3 +422,49 @@ def linking_number(
         pa = close(pa, radius_factor * rad)
         pb = close(pb, 1.5 * radius_factor * rad)
     return int(np.rint(gauss_linking(pa, pb)))
+
+
+def touch_extent(
+    a: np.ndarray,
+    b: np.ndarray | None = None,
+    *,
+    radius: float,
+    gap: float = 0.5,
+) -> float:
+    """Size of a knot: the largest distance between two places where its ropes touch.
+
+    Two capsules touch when their axes are closer than ``(2 + gap) * radius``.
+    With ``b`` the touches are between rope ``a`` and rope ``b``; without it,
+    between parts of ``a`` more than a half turn around a rope (pi times its
+    diameter of arclength) apart, so that a bent rope does not touch itself
+    at every bend. A tight knot is a few diameters across; two half knots
+    tied apart, or two ropes lying side by side, measure the whole stretch
+    where they touch. O(n m) segment pairs (NumPy).
+
+    Args:
+        a, b: ``(n, 3)`` and ``(m, 3)`` points (m).
+        radius: rope radius (m).
+        gap: clearance (fraction of the radius) that still counts as touching.
+
+    Returns:
+        The extent in metres (0 where nothing touches, or only at one place).
+    """
+    from sandbox.collision.capsule_np import segment_segment_closest
+
+    pa = _check_rope(a, "a")
+    pb = pa if b is None else _check_rope(b, "b")
+    i, j = np.meshgrid(np.arange(len(pa) - 1), np.arange(len(pb) - 1), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    if b is None:
+        seg = np.linalg.norm(np.diff(pa, axis=0), axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        keep = (j > i) & (s[j] - s[i + 1] > np.pi * 2.0 * radius)
+        i, j = i[keep], j[keep]
+    if len(i) == 0:
+        return 0.0
+    _, _, c1, c2, dist = segment_segment_closest(pa[i], pa[i + 1], pb[j], pb[j + 1])
+    hit = dist < (2.0 + gap) * radius
+    if hit.sum() < 2:
+        return 0.0
+    p = 0.5 * (c1[hit] + c2[hit])
+    return float(np.max(np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)))

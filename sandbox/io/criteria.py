@@ -121,6 +121,18 @@ def _knot(world, of) -> str:
     raise ValueError("knot needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]' (a knot between two)")
 
 
+def _knot_size(world, of) -> float:
+    """Largest distance between two places where the knot's ropes touch (m)."""
+    from sandbox.geometry.knots import touch_extent
+
+    names = _bodies(world, of)
+    if len(names) not in (1, 2):
+        raise ValueError("knot_size needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]'")
+    pts = [world.rope_positions(n).astype(np.float64) for n in names]
+    radius = max(world.body_scale(base_name(n)) for n in names)
+    return touch_extent(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
+
+
 def _wraps(world, of) -> list[tuple[tuple[str, str], dict]]:
     names = _bodies(world, of)
     wraps = [(key, rec) for key, rec in getattr(world, "wraps", {}).items() if key[0] in names]
@@ -204,6 +216,9 @@ METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "linking_number": ("Gauss linking number of two ropes closed far away, of: [A, B]", _linking_number),
     "knot": ("knot tied in a rope closed far away (unknot, trefoil_left/right, figure_eight, granny_left/right, "
              "square, unknown), of: R; or between two ropes joined at their first particles, of: [A, B]", _knot),
+    "knot_size": ("largest distance (m) between two places where the knot's ropes touch (axes within 2.5 "
+                  "radii): a few diameters for a tight knot, the whole stretch for half knots tied apart; "
+                  "of: R (parts of R a half turn apart) or [A, B]", _knot_size),
     "overlap_error": ("largest distance (m) of a wrapped control line's laid particles from its target line "
                       "(offset by half the cloth thickness), of: cloth", _overlap_error),
     "overlap_error_mean": ("mean of the same distances (m), of: cloth", _overlap_error_mean),
