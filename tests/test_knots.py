@@ -16,6 +16,7 @@ from sandbox.geometry.knots import (
     identify_two_ropes,
     linking_number,
     touch_extent,
+    touch_length,
 )
 from sandbox.geometry.winding import gauss_linking
 
@@ -370,3 +371,20 @@ def test_touch_extent_does_not_depend_on_pose():
     assert e > 0.0
     rot = Rotation.random(random_state=rng).as_matrix()
     assert touch_extent(a @ rot.T + 1.0, b @ rot.T + 1.0, radius=0.4) == pytest.approx(e, rel=1e-9)
+
+
+def test_touch_length_is_the_rope_between_the_first_and_last_touch():
+    r = 0.006
+    a = _line([0.0, 0.0, 0.0], [0.3, 0.0, 0.0], 31)
+    leg = 0.1 - 2 * r
+    b = np.vstack([_line([0.05, 0.1, 0.0], [0.05, 2 * r, 0.0], 10), _line([0.06, 2 * r, 0.0], [0.14, 2 * r, 0.0], 9),
+                   _line([0.15, 2 * r, 0.0], [0.15, 0.1, 0.0], 10)])
+    # on a: the 12 one-centimetre segments from x = 0.04 to 0.16 come within 2.5 r of b;
+    # on b: the flat run and its two joins (0.1 m) and the lowest segment of each leg
+    assert touch_length(a, b, radius=r) == pytest.approx(0.12 + 0.10 + 2 * leg / 9, abs=1e-9)
+    assert touch_length(a, b + [0.0, 0.1, 0.0], radius=r) == 0.0
+    u = np.linspace(-0.5, 0.5, 101)
+    leg_a = np.c_[u * 0.3 + 0.15, 0 * u, 0 * u]
+    bend = np.c_[0.3 + r * np.sin(np.linspace(0, np.pi, 8)), r - r * np.cos(np.linspace(0, np.pi, 8)), 0 * np.arange(8)]
+    hairpin = np.vstack([leg_a, bend, (leg_a + [0, 2 * r, 0])[::-1]])   # touches itself end to end
+    assert touch_length(hairpin, radius=r) == pytest.approx(np.linalg.norm(np.diff(hairpin, axis=0), axis=1).sum())

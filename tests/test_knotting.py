@@ -5,7 +5,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from sandbox.geometry.knots import identify_knot, touch_extent
+from sandbox.geometry.knots import identify_knot, touch_extent, touch_length
 from sandbox.geometry.tube import smooth_axis
 from sandbox.levels import LevelError, load_level_from_string
 from sandbox.maneuvers.knotting import closest_approach, crossing_targets, knot_exit
@@ -443,6 +443,9 @@ def test_knot_criterion_reads_the_final_rope():
     assert METRICS["knot_size"][1](w, "R") == touch_extent(x, radius=w.body_scale("R"))
     with pytest.raises(ValueError, match="knot_size needs"):
         METRICS["knot_size"][1](w, ["R", "R", "R"])
+    assert METRICS["knot_length"][1](w, "R") == touch_length(x, radius=w.body_scale("R"))
+    with pytest.raises(ValueError, match="knot_length needs"):
+        METRICS["knot_length"][1](w, ["R", "R", "R"])
 
 
 BAD_REFS = """

@@ -121,16 +121,28 @@ def _knot(world, of) -> str:
     raise ValueError("knot needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]' (a knot between two)")
 
 
+def _touch_measure(world, of, metric: str, measure) -> float:
+    """``measure(a, b or None, radius=...)`` of the knot in one rope or between two."""
+    names = _bodies(world, of)
+    if len(names) not in (1, 2):
+        raise ValueError(f"{metric} needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]'")
+    pts = [world.rope_positions(n).astype(np.float64) for n in names]
+    radius = max(world.body_scale(base_name(n)) for n in names)
+    return measure(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
+
+
 def _knot_size(world, of) -> float:
     """Largest distance between two places where the knot's ropes touch (m)."""
     from sandbox.geometry.knots import touch_extent
 
-    names = _bodies(world, of)
-    if len(names) not in (1, 2):
-        raise ValueError("knot_size needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]'")
-    pts = [world.rope_positions(n).astype(np.float64) for n in names]
-    radius = max(world.body_scale(base_name(n)) for n in names)
-    return touch_extent(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
+    return _touch_measure(world, of, "knot_size", touch_extent)
+
+
+def _knot_length(world, of) -> float:
+    """Rope held in the knot: along each rope, from its first to its last touch (m)."""
+    from sandbox.geometry.knots import touch_length
+
+    return _touch_measure(world, of, "knot_length", touch_length)
 
 
 def _wraps(world, of) -> list[tuple[tuple[str, str], dict]]:
@@ -219,6 +231,9 @@ METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "knot_size": ("largest distance (m) between two places where the knot's ropes touch (axes within 2.5 "
                   "radii): a few diameters for a tight knot, the whole stretch for half knots tied apart; "
                   "of: R (parts of R a half turn apart) or [A, B]", _knot_size),
+    "knot_length": ("rope held in the knot (m): along each rope, from its first to its last place touching the "
+                    "other (or, of one rope, itself); a tight overhand knot in a 12 mm rope holds about 0.2 m, "
+                    "a loop never pulled through adds its length; of: R or [A, B]", _knot_length),
     "overlap_error": ("largest distance (m) of a wrapped control line's laid particles from its target line "
                       "(offset by half the cloth thickness), of: cloth", _overlap_error),
     "overlap_error_mean": ("mean of the same distances (m), of: cloth", _overlap_error_mean),
