@@ -17,6 +17,7 @@ from sandbox.geometry.knots import (
     linking_number,
     touch_extent,
     touch_length,
+    touch_points,
 )
 from sandbox.geometry.winding import gauss_linking
 
@@ -388,3 +389,15 @@ def test_touch_length_is_the_rope_between_the_first_and_last_touch():
     bend = np.c_[0.3 + r * np.sin(np.linspace(0, np.pi, 8)), r - r * np.cos(np.linspace(0, np.pi, 8)), 0 * np.arange(8)]
     hairpin = np.vstack([leg_a, bend, (leg_a + [0, 2 * r, 0])[::-1]])   # touches itself end to end
     assert touch_length(hairpin, radius=r) == pytest.approx(np.linalg.norm(np.diff(hairpin, axis=0), axis=1).sum())
+
+
+def test_touch_extent_of_many_touches_is_the_brute_force_diameter():
+    """Past 64 touching pairs the diameter is taken over the hull's vertices: the same value."""
+    r = 0.006
+    a = _line([0.0, 0.0, 0.0], [0.5, 0.0, 0.0], 201)
+    t = np.linspace(0.0, 0.5, 201)
+    b = np.c_[t, 1.5 * r * np.cos(40 * t), 1.5 * r * np.sin(40 * t)]   # winds around a all along
+    p, _, _ = touch_points(a, b, radius=r)
+    assert len(p) > 64
+    brute = np.max(np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1))
+    assert touch_extent(a, b, radius=r) == pytest.approx(brute, rel=1e-12)

@@ -488,6 +488,12 @@ def touch_extent(
     p, _, _ = touch_points(a, b, radius=radius, gap=gap)
     if len(p) < 2:
         return 0.0
+    if len(p) > 64:
+        # The farthest pair lies on the convex hull: O(k log k) instead of k^2 distances
+        # ("QJ" jiggles a flat or collinear set so that it has a hull).
+        from scipy.spatial import ConvexHull
+
+        p = p[ConvexHull(p, qhull_options="QJ").vertices]
     return float(np.max(np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)))
 
 
