@@ -22,8 +22,11 @@ def test_rope_wind_reaches_its_criteria_headless():
 def test_self_knot_ties_a_trefoil_headless():
     s = _run("self_knot.yaml")
     assert s["success"] and s["exit_code"] == 0, s["criteria"]
-    knot = next(c for c in s["criteria"] if c["metric"] == "knot")
-    assert knot["value"] == "trefoil_left"
+    value = {c["metric"]: c["value"] for c in s["criteria"]}
+    assert value["knot"] == "trefoil_left"
+    # A tight trefoil in a 12 mm rope is more than a rope diameter across and holds more than
+    # 0.1 m of rope (its ideal closed ropelength is 16.4 diameters, 0.2 m): the metrics measure it.
+    assert 0.012 < value["knot_size"] <= 0.05 and 0.1 < value["knot_length"] <= 0.3, value
 
 
 @pytest.mark.slow
