@@ -173,7 +173,8 @@ class Sandbox:
         cam = self.level.scene.camera
         if cam is None:
             return None
-        return {"position": tuple(cam.position), "look_at": tuple(cam.look_at), "fov": float(cam.fov)}
+        return {"position": tuple(cam.position), "look_at": tuple(cam.look_at), "fov": float(cam.fov),
+                "follow": list(cam.follow), "distance": cam.distance, "smoothing": float(cam.smoothing)}
 
     @property
     def ground_height(self) -> float | None:

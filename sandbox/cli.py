@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import sys
 
@@ -24,6 +23,8 @@ def cmd_run(a: argparse.Namespace) -> int:
     opts = RunOptions(
         out=out, frames=a.frames, arch=a.arch, ply=a.ply, frames_every=a.frames_every or 0, video=a.video,
         gif=a.gif, width=a.width, height=a.height, progress=not a.quiet, overrides=overrides,
+        follow=[n.strip() for n in a.follow.split(",") if n.strip()] if a.follow else None,
+        follow_distance=a.follow_distance,
     )
     code, summary = run_level(a.level, opts)
     if summary.get("status") == "invalid":
@@ -90,6 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--width", type=int, default=640)
     r.add_argument("--height", type=int, default=480)
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a level value, e.g. sim.substeps=20")
+    r.add_argument("--follow", metavar="ROPE[,ROPE...]",
+                   help="rendered frames follow the knot of these ropes (close-up; over the level's camera)")
+    r.add_argument("--follow-distance", type=float, metavar="M",
+                   help="m from the followed knot to the camera (default: the level camera's distance, or 0.4)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(fn=cmd_run)
     pl = sub.add_parser("play", help="open an interactive window (needs a display and Vulkan)")

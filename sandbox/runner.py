@@ -41,6 +41,8 @@ class RunOptions:
     progress: bool = True
     profile_every: int = 30
     overrides: dict | None = None
+    follow: list[str] | None = None  # ropes whose knot the frames' camera follows (over the level's camera)
+    follow_distance: float | None = None  # m from the knot to the camera
 
 
 def _stats(ms: list[float]) -> dict:
@@ -73,6 +75,23 @@ def _deferred_sigint():
         signal.signal(signal.SIGINT, old)
 
 
+def _follow_problem(level, opts: RunOptions) -> str | None:
+    """What is wrong with ``opts.follow`` for this level (None if nothing)."""
+    if not opts.follow and opts.follow_distance is None:
+        return None
+    if not (opts.frames_every or opts.video or opts.gif):
+        return "--follow sets the camera of rendered frames: add --frames-every K, --video or --gif"
+    if opts.follow_distance is not None and not opts.follow_distance > 0:
+        return f"--follow-distance must be > 0 m, got {opts.follow_distance}"
+    ropes = [r.name for r in level.scene.ropes]
+    if not opts.follow:
+        return "--follow-distance needs --follow ROPE[,ROPE...]"
+    bad = [n for n in opts.follow if n not in ropes]
+    if bad:
+        return f"--follow: {', '.join(map(repr, bad))} not a rope of {level.name}; ropes: {', '.join(ropes) or '(none)'}"
+    return None
+
+
 def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
     """Run a level headless; returns (exit code, summary)."""
     from sandbox.levels import LevelError, load_level
@@ -84,6 +103,9 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         return EXIT_INVALID, {"status": "invalid", "errors": str(exc)}
     except FileNotFoundError as exc:
         return EXIT_INVALID, {"status": "invalid", "errors": str(exc)}
+    problem = _follow_problem(level, opts)
+    if problem:
+        return EXIT_INVALID, {"status": "invalid", "errors": problem}
 
     out = pathlib.Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -118,8 +140,13 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         if opts.frames_every or opts.video or opts.gif:
             from sandbox.io.frames import FrameRecorder
 
+            follow = None
+            if opts.follow:
+                from sandbox.io.frames import KnotFollower
+
+                follow = KnotFollower.from_camera(sim.camera, opts.follow, distance=opts.follow_distance)
             recorder = FrameRecorder(out, every=max(1, opts.frames_every or 1), video=opts.video, gif=opts.gif,
-                                     width=opts.width, height=opts.height)
+                                     width=opts.width, height=opts.height, follow=follow)
         n = summary["frames_planned"]
         bar = None
         if opts.progress:

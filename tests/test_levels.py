@@ -464,3 +464,18 @@ def test_macros_are_checked_when_the_fsm_is_invalid():
         "initial: start", "initial: [start]")
     paths = [e.path for e in errors_of(text)]
     assert paths == ["macros.lift.steps[1].run", "fsm.initial"]
+
+
+def test_camera_follow_names_ropes_and_round_trips():
+    """A camera may follow ropes of the scene (and dumps back); other names are errors that list the ropes."""
+    cam = "  camera: {position: [0, 1, 1], look_at: [0, 1, 0], follow: [%s], distance: 0.3, smoothing: 0.2}\n"
+    good = BASE.replace("scene:\n", "scene:\n" + cam % "rope", 1)
+    level = load_level_from_string(good)
+    assert level.scene.camera.follow == ["rope"] and level.scene.camera.distance == 0.3
+    assert load_level_from_string(dump_level(level)) == level
+    bad = BASE.replace("scene:\n", "scene:\n" + cam % "rope, cord", 1)
+    err = only_error(bad)
+    assert err.path == "scene.camera.follow[1]" and err.line == line_of(bad, "cord")
+    assert "'cord' is not a rope" in err.message and "ropes: rope" in err.message
+    neg = BASE.replace("scene:\n", "scene:\n" + (cam % "rope").replace("0.3", "-0.3"), 1)
+    assert only_error(neg).path == "scene.camera.distance"

@@ -398,3 +398,111 @@ def test_viewer_loop_steps_pauses_and_resets():
     assert first.frame == 3 + 2 + 2  # frames 0-2 run, paused 3-6 with two single steps, frames 7-8 run
     assert len(built) == 2 and built[1].frame == 2  # reset on frame 9, then frames 9 and 10 run
     assert window.calls["mesh"] >= 11 * 3  # ground + cloth + rope + ball every frame
+
+
+class CrossingRopes:
+    """Two straight ropes that touch where they cross at ``cross`` (rope "a" along x, "b" along z, 2 r above)."""
+
+    rope_names = ["a", "b"]
+    r = 0.01
+
+    def __init__(self, cross=(0.3, 0.5, -0.2), apart: bool = False) -> None:
+        self.cross = np.asarray(cross, dtype=np.float64)
+        self.lift = 1.0 if apart else 2.0 * self.r * 0.999
+        self.time = 0.0
+
+    def rope_positions(self, name):
+        t = np.linspace(-0.5, 0.5, 41)[:, None]
+        if name == "a":
+            return self.cross + t * [1.0, 0.0, 0.0]
+        return self.cross + [0.0, self.lift, 0.0] + t * [0.0, 0.0, 1.0]
+
+    def rope_radius(self, name):
+        return self.r
+
+
+def test_knot_centre_is_where_ropes_touch():
+    """Two ropes crossing in contact: the knot centre is midway between their axes at the crossing; apart: none."""
+    from sandbox.io.frames import knot_centre
+
+    sim = CrossingRopes()
+    c = knot_centre([sim.rope_positions("a"), sim.rope_positions("b")], sim.r)
+    assert np.allclose(c, sim.cross + [0.0, 0.5 * sim.lift, 0.0], atol=1e-9)
+    far = CrossingRopes(apart=True)
+    assert knot_centre([far.rope_positions("a"), far.rope_positions("b")], far.r) is None
+    # one rope whose loop crosses itself (t^2 - 1, t^3 - t crosses at t = +-1, the two passes
+    # 0.0198 apart in z): the centre is at the crossing, not in the loop
+    t = np.linspace(-1.6, 1.6, 321)
+    loop = np.stack([0.1 * (t * t - 1.0), 0.5 + 0.1 * (t**3 - t), 0.0099 * t], 1)
+    c1 = knot_centre([loop], 0.01)
+    assert c1 is not None and np.allclose(c1, [0.0, 0.5, 0.0], atol=2e-3)
+
+
+def test_knot_follower_glides_to_the_knot_at_its_time_constant():
+    """The camera's target moves by 1 - exp(-dt / smoothing) of the way to the knot; the eye keeps its offset."""
+    from sandbox.io.frames import KnotFollower
+
+    sim = CrossingRopes()
+    start = np.array([0.0, 0.4, 0.0])
+    f = KnotFollower(["a", "b"], look_at=start, direction=(0.0, 3.0, 4.0), distance=0.25, smoothing=0.5)
+    goal = sim.cross + [0.0, 0.5 * sim.lift, 0.0]
+    sim.time = 0.2
+    cam = f.update(sim)
+    expect = start + (1.0 - np.exp(-0.2 / 0.5)) * (goal - start)
+    assert np.allclose(cam.look_at, expect, atol=1e-9)
+    assert np.allclose(np.subtract(cam.position, cam.look_at), [0.0, 0.15, 0.2], atol=1e-9)
+    sim.time = 0.5
+    cam = f.update(sim)
+    assert np.allclose(cam.look_at, goal + np.exp(-0.5 / 0.5) * (start - goal), atol=1e-9)
+    apart = CrossingRopes(apart=True)  # nothing touches: it stays where it is
+    apart.time = 2.0
+    assert np.allclose(f.update(apart).look_at, cam.look_at)
+    snap = KnotFollower(["a", "b"], look_at=start, direction=(1, 1, 1), distance=1.0, smoothing=0.0)
+    sim.time = 0.01
+    assert np.allclose(snap.update(sim).look_at, goal, atol=1e-9)
+
+
+def test_knot_follower_from_camera():
+    """A level camera's follow list, direction and distance make the follower; ropes given override it; none: None."""
+    from sandbox.io.frames import KnotFollower
+
+    level_cam = {"position": (0.0, 1.0, 2.0), "look_at": (0.0, 1.0, 0.0), "fov": 40.0,
+                 "follow": ["a", "b"], "distance": None, "smoothing": 0.3}
+    f = KnotFollower.from_camera(level_cam)
+    assert f.ropes == ["a", "b"] and f.fov == 40.0 and f.smoothing == 0.3
+    assert np.allclose(f.offset, [0.0, 0.0, 2.0]) and np.allclose(f.look, [0.0, 1.0, 0.0])
+    g = KnotFollower.from_camera(level_cam, ["b"], distance=0.5)
+    assert g.ropes == ["b"] and np.allclose(f.offset / 2.0 * 0.5, g.offset)
+    assert KnotFollower.from_camera({**level_cam, "follow": []}) is None
+    assert KnotFollower.from_camera(None) is None
+    h = KnotFollower.from_camera(None, ["a"])
+    assert np.isclose(np.linalg.norm(h.offset), 0.4)
+    with pytest.raises(ValueError, match="distance > 0"):
+        KnotFollower(["a"], look_at=(0, 0, 0), direction=(0, 0, 1), distance=0.0)
+
+
+def test_frame_recorder_follows_a_knot_the_level_camera_names(tmp_path):
+    """With a level camera that follows ropes, the recorder's frames are framed on their knot, not the level view."""
+    from sandbox.io.frames import FrameRecorder
+
+    class Knotted(FakeSim):
+        rope_names = ["a", "b"]
+        camera = {"position": (0.0, 1.5, 3.0), "look_at": (0.0, 0.3, 0.0), "fov": 45.0,
+                  "follow": ["a", "b"], "distance": 0.4, "smoothing": 0.0}
+        ropes = CrossingRopes(cross=(0.2, 0.6, 0.1))
+
+        def rope_positions(self, name):
+            return self.ropes.rope_positions(name)
+
+    sim = Knotted()
+    rec = FrameRecorder(tmp_path, every=1, width=96, height=72)
+    sim.step()
+    rec.on_frame(sim, sim.frame, sim.fsm_state, True)
+    assert rec._follow is not None and np.allclose(rec._follow.look, [0.2, 0.6 + 0.5 * sim.ropes.lift, 0.1], atol=1e-9)
+    plain = FrameRecorder(tmp_path / "plain", every=1, width=96, height=72)
+    Knotted.camera = {**Knotted.camera, "follow": []}
+    plain.on_frame(sim, sim.frame, sim.fsm_state, True)
+    assert plain._follow is None
+    a = rec._last[2].astype(int)
+    b = plain._last[2].astype(int)
+    assert np.abs(a - b).mean() > 5  # a close-up of the crossing, not the level's wide view

@@ -128,6 +128,23 @@ def test_invalid_level_exits_2_without_output(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("opts, message", [
+    ({"follow": ["cord"]}, "add --frames-every K, --video or --gif"),
+    ({"follow": ["cord", "rope9"], "frames_every": 5}, "'rope9' not a rope of engine_small; ropes: cord"),
+    ({"follow": ["cord"], "frames_every": 5, "follow_distance": 0.0}, "--follow-distance must be > 0"),
+    ({"follow_distance": 0.3, "video": True}, "--follow-distance needs --follow"),
+])
+def test_bad_follow_exits_2_before_running(tmp_path, opts, message):
+    """A close-up camera that cannot be made (no rendering, not a rope, bad distance) is refused before the run starts."""
+    from sandbox.runner import EXIT_INVALID, RunOptions, run_level
+
+    out = tmp_path / "never"
+    code, summary = run_level(LEVEL, RunOptions(out=out, frames=2, progress=False, **opts))
+    assert code == EXIT_INVALID and summary["status"] == "invalid"
+    assert message in summary["errors"]
+    assert not out.exists()
+
+
 def test_sigint_leaves_valid_outputs_and_exits_130(tmp_path):
     """Ctrl-C during a run leaves status 'interrupted', a valid metrics.jsonl and state.npz, and exits with 130."""
     out = tmp_path / "int"
@@ -354,3 +371,24 @@ def test_sweep_rigid_shift_moves_the_whole_scene_and_the_named_fsm_points(tmp_pa
     assert _label({"metric": "max_strain", "of": "A"}) == "max_strain[A]"
     assert _label({"metric": "knot", "of": ["A", "B"]}) == "knot[A,B]"
     assert _label({"metric": "fsm_state", "of": None}) == "fsm_state"
+
+
+def test_follow_frames_are_framed_on_the_rope(tmp_path, monkeypatch):
+    """``follow`` reaches the recorder: every rendered frame asks the follower for its camera, at the distance given."""
+    from sandbox.io import frames
+    from sandbox.runner import RunOptions, run_level
+
+    seen = []
+    update = frames.KnotFollower.update
+
+    def spy(self, sim):
+        cam = update(self, sim)
+        seen.append((self.ropes, float(np.linalg.norm(np.subtract(cam.position, cam.look_at)))))
+        return cam
+
+    monkeypatch.setattr(frames.KnotFollower, "update", spy)
+    code, summary = run_level(LEVEL, RunOptions(out=tmp_path / "f", frames=2, frames_every=1, width=64, height=48,
+                                                progress=False, follow=["cord"], follow_distance=0.2))
+    assert summary["status"] == "completed", summary
+    assert sorted(p.name for p in (tmp_path / "f" / "frames").glob("*.png")) == ["00000.png", "00001.png"]
+    assert len(seen) >= 2 and all(r == ["cord"] and abs(d - 0.2) < 1e-9 for r, d in seen)

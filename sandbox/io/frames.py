@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from shaders.camera import Camera, fit_sphere, from_level
+from shaders.camera import DEFAULT_VIEW, Camera, fit_sphere, from_level
 from shaders.scene import MeshItem, RenderScene, crease_split, ground_cell_for, tube_mesh
 
 ROPE_COLORS = ((0.90, 0.55, 0.15), (0.20, 0.45, 0.85), (0.25, 0.70, 0.35), (0.80, 0.25, 0.60), (0.90, 0.85, 0.30))
@@ -103,6 +103,95 @@ class _Framing:
         return self.camera
 
 
+def knot_centre(ropes: list[np.ndarray], radius: float) -> np.ndarray | None:
+    """Where a knot is: the median of the places its ropes touch (``touch_points``).
+
+    Two or more ropes: touches between every pair; one rope: touches of
+    parts of it more than half a turn apart. The median, not the mean, so
+    that a tail brushing the rope far from the knot does not move it.
+
+    Returns:
+        ``(3,)`` point in m, or None where nothing touches.
+    """
+    from sandbox.geometry.knots import touch_points
+
+    pts = [np.asarray(p, dtype=np.float64) for p in ropes]
+    if len(pts) == 1:
+        found = [touch_points(pts[0], radius=radius)[0]]
+    else:
+        found = [touch_points(pts[i], pts[j], radius=radius)[0]
+                 for i in range(len(pts)) for j in range(i + 1, len(pts))]
+    hits = np.vstack(found)
+    return np.median(hits, axis=0) if len(hits) else None
+
+
+class KnotFollower:
+    """A camera that keeps a knot in the middle of the frame (level ``camera.follow``).
+
+    It looks at ``knot_centre`` of the followed ropes from a fixed direction
+    and distance; the point it looks at moves towards the knot with time
+    constant ``smoothing`` (s of simulated time), and stays where it is while
+    nothing touches.
+
+    Args:
+        ropes: names of the ropes whose knot is followed.
+        look_at: (3,) m, where it looks before anything touches.
+        direction: (3,) from the point looked at towards the eye (any length).
+        distance: m from the point looked at to the eye.
+        fov: vertical field of view in degrees.
+        smoothing: s; 0 jumps to the knot at once.
+    """
+
+    def __init__(self, ropes: list[str], *, look_at, direction, distance: float, fov: float = 45.0,
+                 smoothing: float = 0.5) -> None:
+        if not ropes:
+            raise ValueError("a KnotFollower needs at least one rope to follow")
+        d = np.asarray(direction, dtype=np.float64)
+        if not np.linalg.norm(d) > 0.0 or not distance > 0.0:
+            raise ValueError(f"direction must be non-zero and distance > 0 (got {direction!r}, {distance!r})")
+        self.ropes = list(ropes)
+        self.look = np.asarray(look_at, dtype=np.float64).copy()
+        self.offset = d / np.linalg.norm(d) * float(distance)
+        self.fov = float(fov)
+        self.smoothing = float(smoothing)
+        self._time: float | None = None
+
+    @classmethod
+    def from_camera(cls, camera: dict | None, ropes: list[str] | None = None, *,
+                    distance: float | None = None) -> KnotFollower | None:
+        """The follower a level's camera asks for (or that ``ropes`` asks for over it); None if none.
+
+        Without a level camera it looks from ``DEFAULT_VIEW``, 0.4 m away (or ``distance``).
+        """
+        camera = camera or {}
+        ropes = ropes or camera.get("follow") or []
+        if not ropes:
+            return None
+        if "position" in camera:
+            look = np.asarray(camera["look_at"], dtype=np.float64)
+            direction = np.asarray(camera["position"], dtype=np.float64) - look
+            default = float(np.linalg.norm(direction))
+        else:
+            look, direction, default = np.zeros(3), np.asarray(DEFAULT_VIEW, dtype=np.float64), 0.4
+        return cls(ropes, look_at=look, direction=direction,
+                   distance=float(distance or camera.get("distance") or default),
+                   fov=float(camera.get("fov", 45.0)), smoothing=float(camera.get("smoothing", 0.5)))
+
+    def update(self, sim: Any) -> Camera:
+        """The camera for the simulation's current state (call once per rendered frame)."""
+        radius = max(float(sim.rope_radius(n)) for n in self.ropes)
+        centre = knot_centre([sim.rope_positions(n) for n in self.ropes], radius)
+        now = float(sim.time)
+        if centre is not None:
+            dt = max(now - (self._time if self._time is not None else 0.0), 0.0)  # it has looked at look_at since t = 0
+            blend = 1.0 if self.smoothing <= 0.0 else 1.0 - math.exp(-dt / self.smoothing)
+            self.look = self.look + blend * (centre - self.look)
+        self._time = now
+        eye = self.look + self.offset
+        near = max(1e-4, 1e-3 * float(np.linalg.norm(self.offset)))
+        return Camera(tuple(map(float, eye)), tuple(map(float, self.look)), fov=self.fov, near=near)
+
+
 def _downscale(img: np.ndarray, factor: int) -> np.ndarray:
     """Box-filter an (H, W, 3) uint8 image by an integer factor."""
     if factor <= 1:
@@ -122,6 +211,8 @@ class FrameRecorder:
         gif: append written frames, at half size, to ``anim.gif``.
         width, height: image size in pixels.
         fps: playback rate of the video and GIF.
+        follow: a camera that follows a knot (default: the one the level's
+            camera asks for, if it names ropes to follow).
     """
 
     def __init__(
@@ -134,6 +225,7 @@ class FrameRecorder:
         width: int = 640,
         height: int = 480,
         fps: float = 30.0,
+        follow: KnotFollower | None = None,
     ) -> None:
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
@@ -149,6 +241,8 @@ class FrameRecorder:
         self._tiles: list[tuple[str, np.ndarray]] = []
         self._last: tuple[int, str, np.ndarray] | None = None
         self._ground_cell: float | None = None
+        self._follow = follow
+        self._follow_checked = follow is not None
 
     # ------------------------------------------------------------------ rendering
     def render(self, sim: Any) -> np.ndarray:
@@ -162,7 +256,13 @@ class FrameRecorder:
         if self._ground_cell is None:  # fixed from the first frame: the checker must not jump in a video
             self._ground_cell = ground_cell_for(scene.bounding_sphere()[1])
         scene.ground_cell = self._ground_cell
-        camera = from_level(sim.camera) or self._framing.update(scene)
+        if not self._follow_checked:
+            self._follow = KnotFollower.from_camera(sim.camera)
+            self._follow_checked = True
+        if self._follow is not None:
+            camera = self._follow.update(sim)
+        else:
+            camera = from_level(sim.camera) or self._framing.update(scene)
         img = self._renderer.render(scene, camera)
         self._render_ms.append((time.perf_counter() - t0) * 1e3)
         return img

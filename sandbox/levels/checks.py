@@ -83,6 +83,21 @@ def check_names(data: Any) -> list[Finding]:
     return out
 
 
+def check_camera(data: Any) -> list[Finding]:
+    """The ropes a camera follows must be ropes of the scene."""
+    camera = data.get("scene", {}).get("camera") if isinstance(data.get("scene"), dict) else None
+    follow = camera.get("follow") if isinstance(camera, dict) else None
+    if not isinstance(follow, list):
+        return []
+    ropes = scene_names(data)["rope"]
+    return [
+        Finding(("scene", "camera", "follow", k),
+                f"the camera follows the knot of ropes: {name!r} is not a rope; ropes: {', '.join(ropes) or '(none)'}")
+        for k, name in enumerate(follow)
+        if isinstance(name, str) and name not in ropes
+    ]
+
+
 def _value_error(value: Any, default: Any) -> str | None:
     def number(v: Any) -> bool:
         return isinstance(v, (int, float)) and not isinstance(v, bool)

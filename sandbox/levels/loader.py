@@ -159,6 +159,7 @@ def _validate(
     except pydantic.ValidationError as exc:
         findings += convert(exc, Level, data)
     findings += checks.check_names(data)
+    findings += checks.check_camera(data)
     findings += checks.check_objects(data, base_dir)
 
     macros: dict[str, Macro] = {}

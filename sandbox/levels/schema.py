@@ -182,11 +182,24 @@ class Ground(_Model):
 
 
 class Camera(_Model):
-    """Initial viewpoint (m, degrees)."""
+    """Viewpoint of rendered frames (m, degrees, s).
+
+    With ``follow`` the camera tracks the knot of those ropes: it looks at
+    where they touch (the median of their touching points; of one rope,
+    where parts of it more than half a turn apart touch) from the direction
+    of ``position`` seen from ``look_at``, ``distance`` away (default: as far
+    as ``position`` is from ``look_at``). The point it looks at moves
+    towards the knot with time constant ``smoothing`` (0: at once), so that
+    a tail brushing past does not jerk the view; before anything touches it
+    stays at ``look_at``.
+    """
 
     position: Vec3
     look_at: Vec3
     fov: between(float, 1, 170, lo_open=True, hi_open=True) = 45.0
+    follow: list[Name] = []
+    distance: Positive | None = None
+    smoothing: NonNegative = 0.5
 
 
 class Keyframe(_Model):
