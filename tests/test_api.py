@@ -291,7 +291,7 @@ def _trees() -> int:
     return ti.lang.impl.get_runtime().prog.get_snode_tree_size()
 
 
-@pytest.mark.parametrize("level", ["rope_wind.yaml", "wrap_bottle.yaml"])
+@pytest.mark.parametrize("level", ["rope_wind.yaml", pytest.param("wrap_bottle.yaml", marks=pytest.mark.slow)])
 def test_a_world_takes_one_field_tree(level):
     """Taichi never frees a field tree and a process holds a few hundred: a World (ropes; or cloth, a mesh object and its
     distance grid) allocates all its fields into one, so a host can load levels again and again."""

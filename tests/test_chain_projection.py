@@ -327,6 +327,7 @@ def _granny_draft_shifted(dx: float) -> str:
     return yaml.safe_dump(level, sort_keys=False)
 
 
+@pytest.mark.slow  # compiles the draft's kernels (a minute on 2 cores); the default run keeps the box fold above
 def test_a_fold_with_no_small_pivot_is_not_thrown():
     """The granny draft shifted 5 cm sideways: in frame 9, as its ropes drop beside the box, a fold of
     rope B touching the box made the chain system singular with no single small pivot; the step
