@@ -139,3 +139,52 @@ def test_straightened_run_stops_short_of_a_held_particle_it_cannot_reach():
     np.testing.assert_allclose(x[31], [0.0, 0.5, 0.12], atol=1e-6)
     seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
     assert np.abs(seg / 0.02 - 1).max() < 0.01
+
+
+def test_knot_particles_are_where_t_touches_c():
+    """T's particles next to where C lies across it (axes within 2.5 radii), as strand indices; of two strands
+    of one rope only touches between them count; ropes apart: none."""
+    from sandbox.maneuvers.winding import knot_particles
+
+    t = np.stack([np.linspace(0.0, 0.2, 21), np.zeros(21), np.zeros(21)], 1)  # 1 cm rods along x
+    c = np.stack([np.full(11, 0.123), np.full(11, 0.0119), np.linspace(-0.05, 0.05, 11)], 1)  # across T at x = 12.3 cm
+    # segments 11-13 pass within 15 mm of C's axis (12.3, 11.9 and 13.8 mm), so particles 11..14
+    assert knot_particles(t, c, (0, 21), (0, 11), 0.006).tolist() == [11, 12, 13, 14]
+    assert knot_particles(t, c, (5, 21), (0, 11), 0.006).tolist() == [6, 7, 8, 9]  # strand T = rope[5:]
+    assert len(knot_particles(t, c + [0.0, 0.05, 0.0], (0, 21), (0, 11), 0.006)) == 0
+    # one rope: T = [0, 21) along x; C = [21, 42) turns at x = 0.2 and crosses back over T at x = 5.3 cm
+    turn = np.array([[0.2, 0.0, 0.05], [0.2, 0.0, 0.1], [0.12, 0.0, 0.1]])
+    over = np.stack([np.full(18, 0.053), np.full(18, 0.0119), np.linspace(0.085, -0.085, 18)], 1)
+    rope = np.vstack([t, turn, over])
+    assert knot_particles(rope, None, (0, 21), (21, 42), 0.006).tolist() == [4, 5, 6, 7]
+    assert len(knot_particles(rope, None, (0, 10), (21, 42), 0.006)) == 4  # T = rope[0:10] holds the crossing too
+    assert len(knot_particles(rope, None, (10, 21), (21, 42), 0.006)) == 0
+
+
+def test_a_knot_tied_before_holds_t_like_a_hand(monkeypatch):
+    """Where T touches C in a knot tied before, the straightened run is cut back as for a held particle: BENT
+    without its pin at 31, with a knot one rod past each end of the run it straightens when nothing holds T
+    there, straightens a shorter run, and no rod of T stretches."""
+    from sandbox.maneuvers import winding
+
+    level = BENT.replace("pins: [start, end, 31]", "pins: [start, end]")
+    monkeypatch.setattr(winding, "knot_particles", lambda *a, **k: np.zeros(0, np.int64))
+    free = _world(level)
+    free.step()
+    t = free._rope("T")
+    run = free.fsm._maneuver.straight - t.start
+    lo, hi = int(run.min()), int(run.max())
+    asked = []
+
+    def knot_beside_the_run(x_t, x_c, t_span, c_span, radius):
+        asked.append((t_span, c_span))
+        return np.array([lo - 1, hi + 1])
+
+    monkeypatch.setattr(winding, "knot_particles", knot_beside_the_run)
+    w = _world(level)
+    w.step()
+    cut = w.fsm._maneuver.straight - t.start
+    assert asked == [((0, t.end - t.start), (0, w._rope("C").end - w._rope("C").start))]
+    assert lo <= cut.min() and cut.max() <= hi and len(cut) < len(run)
+    x = w.rope_positions("T").astype(np.float64)
+    assert np.abs(np.linalg.norm(np.diff(x, axis=0), axis=1) / 0.02 - 1).max() < 0.01
