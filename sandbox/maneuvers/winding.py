@@ -21,34 +21,6 @@ import pydantic
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
 
 
-def knot_particles(x_t: np.ndarray, x_c: np.ndarray | None, t_span: tuple[int, int], c_span: tuple[int, int],
-                   radius: float) -> np.ndarray:
-    """Particles of strand T that touch strand C (``touch_points``): where a knot tied before holds T.
-
-    Args:
-        x_t: ``(n, 3)`` T's whole rope (m).
-        x_c: ``(m, 3)`` C's whole rope, or None when T and C are strands of one rope (``x_t``).
-        t_span, c_span: ``[start, end)`` of each strand in its whole rope.
-        radius: the larger of the two ropes' radii (m).
-
-    Returns:
-        Indices into T's strand (0 is ``t_span[0]``), sorted and unique.
-    """
-    from sandbox.geometry.knots import touch_points
-
-    def inside(seg: np.ndarray, span: tuple[int, int]) -> np.ndarray:
-        return (seg >= span[0]) & (seg + 1 < span[1])
-
-    _, i, j = touch_points(x_t, x_c, radius=radius)
-    if x_c is None:  # pairs within one rope, either way round: T's segment of each
-        seg = np.concatenate([i[inside(i, t_span) & inside(j, c_span)], j[inside(j, t_span) & inside(i, c_span)]])
-    else:
-        seg = i[inside(i, t_span) & inside(j, c_span)]
-    if not len(seg):
-        return np.zeros(0, np.int64)
-    return np.unique(np.concatenate([seg, seg + 1])) - t_span[0]
-
-
 class WindingParams(Params):
     active: str  # rope C
     target: str  # rope T
@@ -148,9 +120,8 @@ class Winding(Maneuver):
         ``xt`` is updated in place to the straightened layout (G is traced on
         it). The run is shortened on a side where its end would land out of
         the rope's reach from the nearest particle held outside it (a hand
-        pinching T, T's standing end, or where T touches C in a knot tied
-        before): the rods between them would have to stretch by more than
-        1 %. Returns their global indices.
+        pinching T, T's standing end): the rods between them would have to
+        stretch by more than 1 %. Returns their global indices.
         """
         w = self.world
         half = int(round(0.5 * self.params.straighten / self.t.rod_length))
@@ -162,9 +133,6 @@ class Winding(Maneuver):
         d /= max(float(np.linalg.norm(d)), 1e-12)
         rod = self.t.rod_length
         held = np.flatnonzero(w.control.is_driven(self.t.start + np.arange(len(xt))))
-        # A knot tied before between T and C holds T as firmly as a hand does.
-        knot = self._knot_held()
-        held = np.union1d(held, knot[(knot < lo) | (knot > hi)]).astype(np.int64)
 
         def reachable(i: int, h: int) -> bool:
             return float(np.linalg.norm(xs[self.j0] + (i - self.j0) * rod * d - xs[h])) <= 1.01 * abs(i - h) * rod
@@ -182,19 +150,6 @@ class Winding(Maneuver):
         w.control.drive(idx, line)
         xt[run] = line
         return idx
-
-    def _knot_held(self) -> np.ndarray:
-        """T's particles (strand indices) that touch C's rope now (``knot_particles``)."""
-        from sandbox.model.strands import base_name
-
-        w = self.world
-        x = w.positions().astype(np.float64)
-        whole_t, whole_c = w._rope(base_name(self.t.name)), w._rope(base_name(self.c.name))
-        t_span = (self.t.start - whole_t.start, self.t.end - whole_t.start)
-        c_span = (self.c.start - whole_c.start, self.c.end - whole_c.start)
-        x_c = None if whole_c.name == whole_t.name else x[whole_c.start:whole_c.end]
-        return knot_particles(x[whole_t.start:whole_t.end], x_c, t_span, c_span,
-                              max(self.t.radius, self.c.radius))
 
     def _crossing_particle(self, xc: np.ndarray) -> int:
         """C's particle at the crossing: nearest the X a Crossing recorded, else nearest T.
