@@ -400,6 +400,44 @@ def test_viewer_loop_steps_pauses_and_resets():
     assert window.calls["mesh"] >= 11 * 3  # ground + cloth + rope + ball every frame
 
 
+def test_viewer_follow_key_glides_the_orbit_to_the_knot():
+    """With "f" the orbit's centre glides to where the ropes touch, keeping its yaw, pitch and distance;
+    "f" again stops it where it is; a level camera that follows ropes starts the viewer following."""
+    from sandbox.viewer.play import Viewer
+
+    class Crossed(FakeSim):
+        rope_names = ["a", "b"]
+        ropes = CrossingRopes(cross=(0.2, 0.6, 0.1))
+
+        def rope_positions(self, name):
+            return self.ropes.rope_positions(name)
+
+        def rope_radius(self, name):
+            return self.ropes.r
+
+    knot = np.array([0.2, 0.6 + 0.5 * Crossed.ropes.lift, 0.1])
+    window = FakeWindow(frames=40, presses={2: ["f"], 30: ["f"]})
+    viewer = Viewer(window, Crossed(), Crossed)
+    start = viewer.orbit.target.copy()
+    yaw, pitch, dist = viewer.orbit.yaw, viewer.orbit.pitch, viewer.orbit.distance
+    assert not viewer.following
+    viewer.run()
+    assert not viewer.following  # toggled off on frame 30
+    # followed on frames 2-29 (each steps 1/60 s first; 0.5 s time constant), then left where it was
+    left = np.exp(-(30 - 2) / 60.0 / 0.5)
+    np.testing.assert_allclose(viewer.orbit.target, knot + left * (start - knot), atol=1e-3)
+    assert (viewer.orbit.yaw, viewer.orbit.pitch, viewer.orbit.distance) == (yaw, pitch, dist)
+
+    class LevelFollows(Crossed):
+        camera = {"position": (0.0, 1.0, 2.0), "look_at": (0.0, 0.5, 0.0), "fov": 45.0,
+                  "follow": ["a", "b"], "distance": None, "smoothing": 0.0}
+
+    viewer = Viewer(FakeWindow(frames=2, presses={}), LevelFollows(), LevelFollows)
+    assert viewer.following
+    viewer.run()
+    np.testing.assert_allclose(viewer.orbit.target, knot, atol=1e-9)
+
+
 class CrossingRopes:
     """Two straight ropes that touch where they cross at ``cross`` (rope "a" along x, "b" along z, 2 r above)."""
 

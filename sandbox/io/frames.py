@@ -140,10 +140,11 @@ class KnotFollower:
         distance: m from the point looked at to the eye.
         fov: vertical field of view in degrees.
         smoothing: s; 0 jumps to the knot at once.
+        start_time: s of simulated time since which it has looked at ``look_at``.
     """
 
     def __init__(self, ropes: list[str], *, look_at, direction, distance: float, fov: float = 45.0,
-                 smoothing: float = 0.5) -> None:
+                 smoothing: float = 0.5, start_time: float = 0.0) -> None:
         if not ropes:
             raise ValueError("a KnotFollower needs at least one rope to follow")
         d = np.asarray(direction, dtype=np.float64)
@@ -154,7 +155,7 @@ class KnotFollower:
         self.offset = d / np.linalg.norm(d) * float(distance)
         self.fov = float(fov)
         self.smoothing = float(smoothing)
-        self._time: float | None = None
+        self._time = float(start_time)
 
     @classmethod
     def from_camera(cls, camera: dict | None, ropes: list[str] | None = None, *,
@@ -183,7 +184,7 @@ class KnotFollower:
         centre = knot_centre([sim.rope_positions(n) for n in self.ropes], radius)
         now = float(sim.time)
         if centre is not None:
-            dt = max(now - (self._time if self._time is not None else 0.0), 0.0)  # it has looked at look_at since t = 0
+            dt = max(now - self._time, 0.0)
             blend = 1.0 if self.smoothing <= 0.0 else 1.0 - math.exp(-dt / self.smoothing)
             self.look = self.look + blend * (centre - self.look)
         self._time = now

@@ -200,6 +200,14 @@ class Viewer:
             self.ground = ground_mesh(ti, centre, radius, float(sim.ground_height) - 1e-4 * radius)
         self.paused, self.speed_index, self.acc = False, SPEEDS.index(1.0), 0.0
         self.frame_ms = 16.7
+        # "f" follows the knot of the level camera's ropes (or of every rope): the orbit's
+        # centre glides to where they touch while the mouse keeps turning and zooming.
+        follow = list((sim.camera or {}).get("follow") or [])
+        self.follow_ropes = follow or list(sim.rope_names)
+        self.follower = None
+        self.following = False
+        if follow:
+            self._toggle_follow()
 
     def _keys(self) -> None:
         ti = self.ti
@@ -212,10 +220,24 @@ class Viewer:
                 self.sim.step()
             elif e.key == "r":
                 self.sim = self.build()
+            elif e.key == "f":
+                self._toggle_follow()
             elif e.key == ti.ui.UP:
                 self._speed(+1)
             elif e.key == ti.ui.DOWN:
                 self._speed(-1)
+
+    def _toggle_follow(self) -> None:
+        """Start following the knot from where the orbit looks now, or stop (the orbit stays put)."""
+        from sandbox.io.frames import KnotFollower
+
+        if self.following or not self.follow_ropes:
+            self.following = False
+            return
+        smoothing = float((self.sim.camera or {}).get("smoothing", 0.5))
+        self.follower = KnotFollower(self.follow_ropes, look_at=self.orbit.target, direction=(0.0, 0.0, 1.0),
+                                     distance=1.0, smoothing=smoothing, start_time=float(self.sim.time))
+        self.following = True
 
     def _speed(self, step: int) -> None:
         self.speed_index = int(np.clip(self.speed_index + step, 0, len(SPEEDS) - 1))
@@ -233,7 +255,8 @@ class Viewer:
                 self._speed(+1)
             if g.button("speed -"):
                 self._speed(-1)
-            g.text("drag/arrows: orbit, speed  z/x: zoom  space: pause  n: step  r: reset")
+            g.text("drag/arrows: orbit, speed  z/x: zoom  space: pause  n: step  r: reset  f: follow knot"
+                   + ("  FOLLOWING" if self.following else ""))
 
     def run(self) -> None:
         """Loop until the window closes."""
@@ -245,6 +268,9 @@ class Viewer:
                 for _ in range(int(self.acc)):
                     self.sim.step()
                 self.acc -= int(self.acc)
+            if self.following:
+                self.follower.update(self.sim)
+                self.orbit.target = self.follower.look.copy()
             self.orbit.track(self.window, self.ti)
             self.orbit.apply(self.camera)
             self.scene.set_camera(self.camera)
