@@ -513,8 +513,11 @@ def test_knot_follower_from_camera():
     assert g.ropes == ["b"] and np.allclose(f.offset / 2.0 * 0.5, g.offset)
     assert KnotFollower.from_camera({**level_cam, "follow": []}) is None
     assert KnotFollower.from_camera(None) is None
-    h = KnotFollower.from_camera(None, ["a"])
+    h = KnotFollower.from_camera(None, ["a", "b"])
     assert np.isclose(np.linalg.norm(h.offset), 0.4)
+    apart = CrossingRopes(apart=True)  # no level camera, nothing touching: it looks at the ropes' centroid
+    mid = np.vstack([apart.rope_positions("a"), apart.rope_positions("b")]).mean(axis=0)
+    np.testing.assert_allclose(h.update(apart).look_at, mid, atol=1e-9)
     with pytest.raises(ValueError, match="distance > 0"):
         KnotFollower(["a"], look_at=(0, 0, 0), direction=(0, 0, 1), distance=0.0)
 

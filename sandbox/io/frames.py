@@ -135,7 +135,8 @@ class KnotFollower:
 
     Args:
         ropes: names of the ropes whose knot is followed.
-        look_at: (3,) m, where it looks before anything touches.
+        look_at: (3,) m, where it looks before anything touches (None: the
+            followed ropes' centroid when it is first asked).
         direction: (3,) from the point looked at towards the eye (any length).
         distance: m from the point looked at to the eye.
         fov: vertical field of view in degrees.
@@ -151,7 +152,7 @@ class KnotFollower:
         if not np.linalg.norm(d) > 0.0 or not distance > 0.0:
             raise ValueError(f"direction must be non-zero and distance > 0 (got {direction!r}, {distance!r})")
         self.ropes = list(ropes)
-        self.look = np.asarray(look_at, dtype=np.float64).copy()
+        self.look = None if look_at is None else np.asarray(look_at, dtype=np.float64).copy()
         self.offset = d / np.linalg.norm(d) * float(distance)
         self.fov = float(fov)
         self.smoothing = float(smoothing)
@@ -162,7 +163,8 @@ class KnotFollower:
                     distance: float | None = None) -> KnotFollower | None:
         """The follower a level's camera asks for (or that ``ropes`` asks for over it); None if none.
 
-        Without a level camera it looks from ``DEFAULT_VIEW``, 0.4 m away (or ``distance``).
+        Without a level camera it looks from ``DEFAULT_VIEW``, 0.4 m away (or
+        ``distance``), at the ropes' centroid until they touch.
         """
         camera = camera or {}
         ropes = ropes or camera.get("follow") or []
@@ -173,7 +175,7 @@ class KnotFollower:
             direction = np.asarray(camera["position"], dtype=np.float64) - look
             default = float(np.linalg.norm(direction))
         else:
-            look, direction, default = np.zeros(3), np.asarray(DEFAULT_VIEW, dtype=np.float64), 0.4
+            look, direction, default = None, np.asarray(DEFAULT_VIEW, dtype=np.float64), 0.4
         return cls(ropes, look_at=look, direction=direction,
                    distance=float(distance or camera.get("distance") or default),
                    fov=float(camera.get("fov", 45.0)), smoothing=float(camera.get("smoothing", 0.5)))
@@ -181,8 +183,11 @@ class KnotFollower:
     def update(self, sim: Any) -> Camera:
         """The camera for the simulation's current state (call once per rendered frame)."""
         radius = max(float(sim.rope_radius(n)) for n in self.ropes)
-        centre = knot_centre([sim.rope_positions(n) for n in self.ropes], radius)
+        ropes = [sim.rope_positions(n) for n in self.ropes]
+        centre = knot_centre(ropes, radius)
         now = float(sim.time)
+        if self.look is None:
+            self.look = np.vstack(ropes).astype(np.float64).mean(axis=0) if centre is None else centre
         if centre is not None:
             dt = max(now - self._time, 0.0)
             blend = 1.0 if self.smoothing <= 0.0 else 1.0 - math.exp(-dt / self.smoothing)
