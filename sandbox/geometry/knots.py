@@ -68,6 +68,7 @@ def _jmirror(p: tuple[tuple[int, int], ...]) -> tuple[tuple[int, int], ...]:
 _TR = ((1, 1), (3, 1), (4, -1))  # right-handed trefoil: t + t^3 - t^4
 _TL = _jmirror(_TR)
 _GRANNY = (1, -2, 3, -2, 1)
+_CR = ((2, 1), (4, 1), (5, -1), (6, 1), (7, -1))  # right-handed cinquefoil T(2,5): t^2 + t^4 - t^5 + t^6 - t^7
 
 KNOTS: dict[str, tuple[tuple[int, ...], int, tuple[tuple[int, int], ...]]] = {
     "unknot": ((1,), 0, ((0, 1),)),
@@ -77,6 +78,10 @@ KNOTS: dict[str, tuple[tuple[int, ...], int, tuple[tuple[int, int], ...]]] = {
     "granny_right": (_GRANNY, -4, _jmul(_TR, _TR)),
     "granny_left": (_GRANNY, 4, _jmul(_TL, _TL)),
     "square": (_GRANNY, 0, _jmul(_TR, _TL)),
+    # five half twists in one run: what two half knots of the same sense become when the
+    # second is drawn into the first with no crossing between them
+    "cinquefoil_right": ((1, -1, 1, -1, 1), -4, _CR),
+    "cinquefoil_left": ((1, -1, 1, -1, 1), 4, _jmirror(_CR)),
 }
 """Known knots: name -> (Alexander polynomial, signature, Jones polynomial)."""
 
