@@ -138,13 +138,10 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         summary["constraints"] = world.model.m
         summary["stages"] = [s for s in world.solver.stages]
         if opts.frames_every or opts.video or opts.gif:
-            from sandbox.io.frames import FrameRecorder
+            from sandbox.io.frames import FrameRecorder, KnotFollower
 
-            follow = None
-            if opts.follow:
-                from sandbox.io.frames import KnotFollower
-
-                follow = KnotFollower.from_camera(sim.camera, opts.follow, distance=opts.follow_distance)
+            # the level camera's follow, or --follow over it; None: the level camera or an automatic one
+            follow = KnotFollower.from_camera(sim.camera, opts.follow, distance=opts.follow_distance)
             recorder = FrameRecorder(out, every=max(1, opts.frames_every or 1), video=opts.video, gif=opts.gif,
                                      width=opts.width, height=opts.height, follow=follow)
         n = summary["frames_planned"]

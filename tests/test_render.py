@@ -461,18 +461,18 @@ class CrossingRopes:
 
 def test_knot_centre_is_where_ropes_touch():
     """Two ropes crossing in contact: the knot centre is midway between their axes at the crossing; apart: none."""
-    from sandbox.io.frames import knot_centre
+    from sandbox.geometry.knots import knot_centre
 
     sim = CrossingRopes()
-    c = knot_centre([sim.rope_positions("a"), sim.rope_positions("b")], sim.r)
+    c = knot_centre([sim.rope_positions("a"), sim.rope_positions("b")], radius=sim.r)
     assert np.allclose(c, sim.cross + [0.0, 0.5 * sim.lift, 0.0], atol=1e-9)
     far = CrossingRopes(apart=True)
-    assert knot_centre([far.rope_positions("a"), far.rope_positions("b")], far.r) is None
+    assert knot_centre([far.rope_positions("a"), far.rope_positions("b")], radius=far.r) is None
     # one rope whose loop crosses itself (t^2 - 1, t^3 - t crosses at t = +-1, the two passes
     # 0.0198 apart in z): the centre is at the crossing, not in the loop
     t = np.linspace(-1.6, 1.6, 321)
     loop = np.stack([0.1 * (t * t - 1.0), 0.5 + 0.1 * (t**3 - t), 0.0099 * t], 1)
-    c1 = knot_centre([loop], 0.01)
+    c1 = knot_centre([loop], radius=0.01)
     assert c1 is not None and np.allclose(c1, [0.0, 0.5, 0.0], atol=2e-3)
 
 
@@ -524,7 +524,7 @@ def test_knot_follower_from_camera():
 
 def test_frame_recorder_follows_a_knot_the_level_camera_names(tmp_path):
     """With a level camera that follows ropes, the recorder's frames are framed on their knot, not the level view."""
-    from sandbox.io.frames import FrameRecorder
+    from sandbox.io.frames import FrameRecorder, KnotFollower
 
     class Knotted(FakeSim):
         rope_names = ["a", "b"]
@@ -536,12 +536,13 @@ def test_frame_recorder_follows_a_knot_the_level_camera_names(tmp_path):
             return self.ropes.rope_positions(name)
 
     sim = Knotted()
-    rec = FrameRecorder(tmp_path, every=1, width=96, height=72)
+    rec = FrameRecorder(tmp_path, every=1, width=96, height=72, follow=KnotFollower.from_camera(sim.camera))
     sim.step()
     rec.on_frame(sim, sim.frame, sim.fsm_state, True)
     assert rec._follow is not None and np.allclose(rec._follow.look, [0.2, 0.6 + 0.5 * sim.ropes.lift, 0.1], atol=1e-9)
-    plain = FrameRecorder(tmp_path / "plain", every=1, width=96, height=72)
     Knotted.camera = {**Knotted.camera, "follow": []}
+    plain = FrameRecorder(tmp_path / "plain", every=1, width=96, height=72,
+                          follow=KnotFollower.from_camera(Knotted.camera))
     plain.on_frame(sim, sim.frame, sim.fsm_state, True)
     assert plain._follow is None
     a = rec._last[2].astype(int)

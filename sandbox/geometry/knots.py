@@ -35,6 +35,7 @@ __all__ = [
     "identify_closed",
     "identify_knot",
     "identify_two_ropes",
+    "knot_centre",
     "linking_number",
     "touch_extent",
     "touch_length",
@@ -531,3 +532,23 @@ def touch_length(
     if b is None:
         return span(pa, np.concatenate([i, j]))
     return span(pa, i) + span(pb, j)
+
+
+def knot_centre(ropes: list[np.ndarray], *, radius: float, gap: float = 0.5) -> np.ndarray | None:
+    """Where a knot is: the median of the places its ropes touch (``touch_points``).
+
+    Two or more ropes: touches between every pair; one rope: touches of
+    parts of it more than half a turn apart. The median, not the mean, so
+    that a tail brushing the rope far from the knot does not move it.
+
+    Returns:
+        ``(3,)`` point in m, or None where nothing touches.
+    """
+    pts = [_check_rope(p, f"ropes[{k}]") for k, p in enumerate(ropes)]
+    if len(pts) == 1:
+        found = [touch_points(pts[0], radius=radius, gap=gap)[0]]
+    else:
+        found = [touch_points(pts[i], pts[j], radius=radius, gap=gap)[0]
+                 for i in range(len(pts)) for j in range(i + 1, len(pts))]
+    hits = np.vstack(found)
+    return np.median(hits, axis=0) if len(hits) else None

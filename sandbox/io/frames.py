@@ -103,60 +103,77 @@ class _Framing:
         return self.camera
 
 
-def knot_centre(ropes: list[np.ndarray], radius: float) -> np.ndarray | None:
-    """Where a knot is: the median of the places its ropes touch (``touch_points``).
+class KnotTracker:
+    """A point that follows a knot: it moves towards ``knot_centre`` of some ropes
+    with time constant ``smoothing`` (s of simulated time), and stays where it is
+    while nothing touches.
 
-    Two or more ropes: touches between every pair; one rope: touches of
-    parts of it more than half a turn apart. The median, not the mean, so
-    that a tail brushing the rope far from the knot does not move it.
-
-    Returns:
-        ``(3,)`` point in m, or None where nothing touches.
+    Args:
+        ropes: names of the ropes whose knot is followed.
+        look_at: (3,) m, where it is before anything touches (None: the
+            followed ropes' centroid when it is first asked).
+        smoothing: s; 0 jumps to the knot at once.
+        start_time: s of simulated time since which it has been at ``look_at``.
     """
-    from sandbox.geometry.knots import touch_points
 
-    pts = [np.asarray(p, dtype=np.float64) for p in ropes]
-    if len(pts) == 1:
-        found = [touch_points(pts[0], radius=radius)[0]]
-    else:
-        found = [touch_points(pts[i], pts[j], radius=radius)[0]
-                 for i in range(len(pts)) for j in range(i + 1, len(pts))]
-    hits = np.vstack(found)
-    return np.median(hits, axis=0) if len(hits) else None
+    def __init__(self, ropes: list[str], *, look_at=None, smoothing: float = 0.5, start_time: float = 0.0) -> None:
+        if not ropes:
+            raise ValueError("a knot to follow needs at least one rope")
+        self.ropes = list(ropes)
+        self.look = None if look_at is None else np.asarray(look_at, dtype=np.float64).copy()
+        self.smoothing = float(smoothing)
+        self._time = float(start_time)
+
+    def update(self, sim: Any) -> np.ndarray:
+        """The point for the simulation's current state, (3,) m (call once per drawn frame)."""
+        from sandbox.geometry.knots import knot_centre
+
+        radius = max(float(sim.rope_radius(n)) for n in self.ropes)
+        ropes = [np.asarray(sim.rope_positions(n), dtype=np.float64) for n in self.ropes]
+        centre = knot_centre(ropes, radius=radius)
+        now = float(sim.time)
+        if self.look is None:
+            self.look = np.vstack(ropes).mean(axis=0) if centre is None else centre
+        if centre is not None:
+            dt = max(now - self._time, 0.0)
+            blend = 1.0 if self.smoothing <= 0.0 else 1.0 - math.exp(-dt / self.smoothing)
+            self.look = self.look + blend * (centre - self.look)
+        self._time = now
+        return self.look
 
 
 class KnotFollower:
     """A camera that keeps a knot in the middle of the frame (level ``camera.follow``).
 
-    It looks at ``knot_centre`` of the followed ropes from a fixed direction
-    and distance; the point it looks at moves towards the knot with time
-    constant ``smoothing`` (s of simulated time), and stays where it is while
-    nothing touches.
+    It looks at a ``KnotTracker``'s point from a fixed direction and distance.
 
     Args:
-        ropes: names of the ropes whose knot is followed.
-        look_at: (3,) m, where it looks before anything touches (None: the
-            followed ropes' centroid when it is first asked).
+        ropes, look_at, smoothing: as for ``KnotTracker``.
         direction: (3,) from the point looked at towards the eye (any length).
         distance: m from the point looked at to the eye.
         fov: vertical field of view in degrees.
-        smoothing: s; 0 jumps to the knot at once.
-        start_time: s of simulated time since which it has looked at ``look_at``.
     """
 
     def __init__(self, ropes: list[str], *, look_at, direction, distance: float, fov: float = 45.0,
-                 smoothing: float = 0.5, start_time: float = 0.0) -> None:
-        if not ropes:
-            raise ValueError("a KnotFollower needs at least one rope to follow")
+                 smoothing: float = 0.5) -> None:
         d = np.asarray(direction, dtype=np.float64)
         if not np.linalg.norm(d) > 0.0 or not distance > 0.0:
             raise ValueError(f"direction must be non-zero and distance > 0 (got {direction!r}, {distance!r})")
-        self.ropes = list(ropes)
-        self.look = None if look_at is None else np.asarray(look_at, dtype=np.float64).copy()
+        self.tracker = KnotTracker(ropes, look_at=look_at, smoothing=smoothing)
         self.offset = d / np.linalg.norm(d) * float(distance)
         self.fov = float(fov)
-        self.smoothing = float(smoothing)
-        self._time = float(start_time)
+
+    @property
+    def ropes(self) -> list[str]:
+        return self.tracker.ropes
+
+    @property
+    def look(self) -> np.ndarray | None:
+        return self.tracker.look
+
+    @property
+    def smoothing(self) -> float:
+        return self.tracker.smoothing
 
     @classmethod
     def from_camera(cls, camera: dict | None, ropes: list[str] | None = None, *,
@@ -182,20 +199,10 @@ class KnotFollower:
 
     def update(self, sim: Any) -> Camera:
         """The camera for the simulation's current state (call once per rendered frame)."""
-        radius = max(float(sim.rope_radius(n)) for n in self.ropes)
-        ropes = [sim.rope_positions(n) for n in self.ropes]
-        centre = knot_centre(ropes, radius)
-        now = float(sim.time)
-        if self.look is None:
-            self.look = np.vstack(ropes).astype(np.float64).mean(axis=0) if centre is None else centre
-        if centre is not None:
-            dt = max(now - self._time, 0.0)
-            blend = 1.0 if self.smoothing <= 0.0 else 1.0 - math.exp(-dt / self.smoothing)
-            self.look = self.look + blend * (centre - self.look)
-        self._time = now
-        eye = self.look + self.offset
+        look = self.tracker.update(sim)
+        eye = look + self.offset
         near = max(1e-4, 1e-3 * float(np.linalg.norm(self.offset)))
-        return Camera(tuple(map(float, eye)), tuple(map(float, self.look)), fov=self.fov, near=near)
+        return Camera(tuple(map(float, eye)), tuple(map(float, look)), fov=self.fov, near=near)
 
 
 def _downscale(img: np.ndarray, factor: int) -> np.ndarray:
@@ -217,8 +224,8 @@ class FrameRecorder:
         gif: append written frames, at half size, to ``anim.gif``.
         width, height: image size in pixels.
         fps: playback rate of the video and GIF.
-        follow: a camera that follows a knot (default: the one the level's
-            camera asks for, if it names ropes to follow).
+        follow: a camera that follows a knot, used instead of the level's
+            camera (``KnotFollower.from_camera``).
     """
 
     def __init__(
@@ -248,7 +255,6 @@ class FrameRecorder:
         self._last: tuple[int, str, np.ndarray] | None = None
         self._ground_cell: float | None = None
         self._follow = follow
-        self._follow_checked = follow is not None
 
     # ------------------------------------------------------------------ rendering
     def render(self, sim: Any) -> np.ndarray:
@@ -262,9 +268,6 @@ class FrameRecorder:
         if self._ground_cell is None:  # fixed from the first frame: the checker must not jump in a video
             self._ground_cell = ground_cell_for(scene.bounding_sphere()[1])
         scene.ground_cell = self._ground_cell
-        if not self._follow_checked:
-            self._follow = KnotFollower.from_camera(sim.camera)
-            self._follow_checked = True
         if self._follow is not None:
             camera = self._follow.update(sim)
         else:

@@ -204,7 +204,7 @@ class Viewer:
         # centre glides to where they touch while the mouse keeps turning and zooming.
         follow = list((sim.camera or {}).get("follow") or [])
         self.follow_ropes = follow or list(sim.rope_names)
-        self.follower = None
+        self.tracker = None
         self.following = False
         if follow:
             self._toggle_follow()
@@ -229,14 +229,14 @@ class Viewer:
 
     def _toggle_follow(self) -> None:
         """Start following the knot from where the orbit looks now, or stop (the orbit stays put)."""
-        from sandbox.io.frames import KnotFollower
+        from sandbox.io.frames import KnotTracker
 
         if self.following or not self.follow_ropes:
             self.following = False
             return
         smoothing = float((self.sim.camera or {}).get("smoothing", 0.5))
-        self.follower = KnotFollower(self.follow_ropes, look_at=self.orbit.target, direction=(0.0, 0.0, 1.0),
-                                     distance=1.0, smoothing=smoothing, start_time=float(self.sim.time))
+        self.tracker = KnotTracker(self.follow_ropes, look_at=self.orbit.target, smoothing=smoothing,
+                                   start_time=float(self.sim.time))
         self.following = True
 
     def _speed(self, step: int) -> None:
@@ -269,8 +269,7 @@ class Viewer:
                     self.sim.step()
                 self.acc -= int(self.acc)
             if self.following:
-                self.follower.update(self.sim)
-                self.orbit.target = self.follower.look.copy()
+                self.orbit.target = self.tracker.update(self.sim).copy()
             self.orbit.track(self.window, self.ti)
             self.orbit.apply(self.camera)
             self.scene.set_camera(self.camera)
