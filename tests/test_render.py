@@ -400,6 +400,35 @@ def test_viewer_loop_steps_pauses_and_resets():
     assert window.calls["mesh"] >= 11 * 3  # ground + cloth + rope + ball every frame
 
 
+def test_follow_camera_does_not_depend_on_how_often_frames_are_written(tmp_path):
+    """The follow camera glides every simulated frame: written every frame or every 10th, frame 10 looks at the same
+    point (the knot moves every frame here, so sampling it only when writing would lag behind)."""
+    from sandbox.io.frames import FrameRecorder, KnotFollower
+
+    class Moving(FakeSim):
+        rope_names = ["a", "b"]
+        camera = {"position": (0.0, 1.5, 3.0), "look_at": (0.0, 0.3, 0.0), "fov": 45.0,
+                  "follow": ["a", "b"], "distance": 0.4, "smoothing": 0.1}
+
+        def rope_positions(self, name):
+            return CrossingRopes(cross=(0.02 * self.frame, 0.6, 0.0)).rope_positions(name)
+
+        def rope_radius(self, name):
+            return CrossingRopes.r
+
+    looks = []
+    for every in (1, 10):
+        sim = Moving()
+        rec = FrameRecorder(tmp_path / str(every), every=every, width=48, height=36,
+                            follow=KnotFollower.from_camera(Moving.camera))
+        for _ in range(10):
+            sim.step()
+            rec.on_frame(sim, sim.frame, sim.fsm_state, False)
+        looks.append(rec._follow.look.copy())
+    np.testing.assert_allclose(looks[0], looks[1], atol=1e-12)
+    assert 0.1 < looks[0][0] < 0.2  # behind the knot (x = 0.2 at frame 10) by the glide's lag, not at frame 1's x
+
+
 def test_viewer_follow_key_glides_the_orbit_to_the_knot():
     """With "f" the orbit's centre glides to where the ropes touch, keeping its yaw, pitch and distance;
     "f" again stops it where it is; a level camera that follows ropes starts the viewer following."""

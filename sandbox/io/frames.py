@@ -284,6 +284,10 @@ class FrameRecorder:
         change (and the first frame, showing the initial state) keeps a tile for
         the contact sheet.
         """
+        if self._follow is not None:
+            # the follow camera glides every simulated frame, so where it looks does not depend on
+            # how often frames are written (a second update in the same frame changes nothing)
+            self._follow.tracker.update(sim)
         due = frame_index % self.every == 0
         state_changed = state_changed or self._last is None
         if not (due or state_changed):
