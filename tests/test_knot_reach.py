@@ -7,7 +7,7 @@ from sandbox.levels import LevelError, load_level_from_string
 
 import sandbox.maneuvers  # noqa: F401
 from tests.levelkit import world_from_text as _world
-from tests.test_knotting import ROOT, TOUCHING
+from tests.test_knotting import ROOT, TOUCHING, TWO_ROPES
 
 
 TOUCHING_SLACK = (TOUCHING.replace("OFFSET", "0.1, contact_spread: 0.12")
@@ -139,3 +139,62 @@ def test_straightened_run_stops_short_of_a_held_particle_it_cannot_reach():
     np.testing.assert_allclose(x[31], [0.0, 0.5, 0.12], atol=1e-6)
     seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
     assert np.abs(seg / 0.02 - 1).max() < 0.01
+
+
+# -- every hold of the rope ------------------------------------------------------------------------
+
+# Hands also hold each rope three rods below its tip.
+HELD_NEAR_TIP = (TWO_ROPES.replace("sites: [start, end]", "sites: [start, 22, end]")
+                 .replace(", timeout: 300", "").replace("SIGN", "1"))
+
+
+def test_within_holds_projects_onto_the_reach_of_every_hold():
+    from sandbox.maneuvers.knotting import within_holds
+    now = np.zeros(3)
+    holds = [(10, np.array([0.0, 0.0, 0.0])), (0, np.array([0.0, -0.2, 0.0]))]
+    # Particle 13 (3 rods of 0.02 m from particle 10, 13 from particle 0); slack 1.
+    p, limit = within_holds(np.array([0.5, 0.0, 0.0]), 13.0, holds, 0.02, 1.0, now)
+    assert limit == 10
+    np.testing.assert_allclose(p, [0.06, 0.0, 0.0], atol=1e-12)  # onto the near ball, along the line
+    q = np.array([0.01, 0.02, 0.0])
+    same, none = within_holds(q, 13.0, holds, 0.02, 1.0, now)
+    assert none is None and same is q
+    # A particle now farther than its reach keeps that distance (a near-taut rope is not pulled in).
+    far_now = np.array([0.08, 0.0, 0.0])
+    p, _ = within_holds(np.array([0.0, 0.5, 0.0]), 13.0, holds[:1], 0.02, 1.0, far_now)
+    np.testing.assert_allclose(np.linalg.norm(p - holds[0][1]), 0.08, atol=1e-9)
+    # Two balls that meet: the result lies in both.
+    p, limit = within_holds(np.array([0.0, 0.3, 0.0]), 13.0, [(10, np.zeros(3)), (16, np.array([0.1, 0.0, 0.0]))],
+                            0.02, 1.0, np.array([0.05, 0.0, 0.0]))
+    assert np.linalg.norm(p) <= 0.06 + 1e-6 and np.linalg.norm(p - [0.1, 0.0, 0.0]) <= 0.06 + 1e-6
+
+
+def test_crossing_keeps_its_tips_within_reach_of_particles_other_hands_hold():
+    """Hands hold A and B three rods below their tips: the Crossing moves each tip only as far as that
+    rope reaches, nothing stretches, and as the strands then cannot meet, the failure names the holds."""
+    w = _world(HELD_NEAR_TIP)
+    a = w._rope("A")
+    tip, held = a.end - 1, a.start + 22
+    w.step()  # A's Anchoring: the hands hold where the particles are
+    hand, tip0 = w.control.target([held])[0], w.control.target([tip])[0]
+    for _ in range(2):
+        w.step()
+    m = w.fsm._maneuver
+    (idx, pos, ways), = [mv for mv in m.moves if tip in np.atleast_1d(mv[0])]
+    reach = max(0.95 * 3 * 0.02, float(np.linalg.norm(tip0 - hand)))  # 3 rods, or as far as it is
+    assert np.linalg.norm(ways[-1] - tip0) > 0.02  # it does move
+    for q in ways:
+        assert np.linalg.norm(q - hand) <= reach + 1e-6
+    worst = 0.0
+    for _ in range(400):
+        w.step()
+        for r in (a, w._rope("B")):
+            seg = np.linalg.norm(np.diff(w.positions()[r.start:r.end], axis=0), axis=1)
+            worst = max(worst, float(np.abs(seg / 0.02 - 1).max()))
+        if w.fsm.finished:
+            break
+    assert worst < 0.01
+    assert w.fsm.finished and not w.fsm.succeeded
+    failed = [e["message"] for e in w.fsm.events if e["type"] == "failed"]
+    assert "held back by A's particle 22" in failed[-1], failed
+    assert "B's particle 22" in failed[-1], failed

@@ -147,6 +147,40 @@ def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
     return point if n <= radius else centre + v * (radius / n)
 
 
+def rope_holds(world, rope, exclude) -> list[tuple[int, np.ndarray]]:
+    """Particles of the whole rope under ``rope`` held by a hand now, but not in ``exclude``: (global index, command)."""
+    whole = world._rope(base_name(rope.name))
+    idx = np.arange(whole.start, whole.end)
+    held = idx[world.control.is_driven(idx) & ~np.isin(idx, np.asarray(list(exclude), dtype=np.int64))]
+    return [(int(h), world.control.target([h])[0].astype(np.float64)) for h in held]
+
+
+def within_holds(point: np.ndarray, particle: float, holds, rod_length: float, slack: float, now: np.ndarray):
+    """``point`` pulled back to where particle ``particle`` (a mean index, at ``now``) can go with its rope's holds kept.
+
+    A rope particle k rods from a held particle can be at most ``slack`` k
+    rod lengths from it, or as far as it is now where that is more (a rope
+    hanging near taut is not pulled in): the point is projected onto the
+    intersection of those balls (alternating projections; the balls meet
+    wherever the holds themselves are within the rope's reach of each
+    other). Returns (point, the held particle that limited it most, or None
+    when it was within every reach already).
+    """
+    balls = [(h, c, max(slack * rod_length * abs(particle - h), float(np.linalg.norm(now - c)))) for h, c in holds]
+    worst, limit = 0.0, None
+    for h, c, r in balls:
+        over = float(np.linalg.norm(point - c)) - r
+        if over > worst:
+            worst, limit = over, h
+    if limit is None:
+        return point, None
+    q = point
+    for _ in range(16):
+        for _, c, r in balls:
+            q = _within(q, c, r)
+    return q, limit
+
+
 class CrossingParams(Params):
     active: str  # strand C
     target: str  # strand T
@@ -198,9 +232,11 @@ class Crossing(Maneuver):
     crossing plane (C to +z sign gap, T to -z sign gap) and then to their
     targets (``crossing_targets``), so that they never meet on the way; no
     waypoint is further from a bottom point than ``slack`` of the rope between
-    them. Done when the tips are there and the strands pass within ``gap`` +
-    radii of each other; the tips stay held. Where they pass closest is
-    recorded as the crossing for a following ``Winding``.
+    them, nor from a particle of their rope that another hand holds (a
+    ``Winding``'s last wound particle, an ``Anchoring``). Done when the tips
+    are there and the strands pass within ``gap`` + radii of each other; the
+    tips stay held. Where they pass closest is recorded as the crossing for
+    a following ``Winding``.
     """
 
     name = "Crossing"
@@ -218,6 +254,7 @@ class Crossing(Maneuver):
         base_c = self._base(x, self.c, self.t, p.active, p.active_base, p.active_tip, tip_c_idx)
         base_t = self._base(x, self.t, self.c, p.target, p.target_base, tip_t_site, tip_t_idx)
         self.moves = []  # (particle indices, current command, waypoints)
+        self.limits = []  # (body, moved particle, held particle that limited it)
         self.c_part, self.t_part = self.c, self.t
         if base_c is None or base_t is None:
             return  # ``update`` reports the failure with the message
@@ -260,11 +297,38 @@ class Crossing(Maneuver):
             w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
         for idx, pos, goal in spread:
             self.moves.append((idx, pos, [goal]))
+        self._keep_holds()
         self.total = sum(float(np.linalg.norm(np.diff(np.vstack([m[1], *m[2]]), axis=0), axis=1).sum())
                          for m in self.moves) or 1.0
         self.travelled = 0.0
         w.crossings = getattr(w, "crossings", {})
         w.crossings[(p.active, p.target)] = self.x.copy()
+
+    def _keep_holds(self) -> None:
+        """Pull every waypoint back within its rope's reach from the particles other hands hold.
+
+        A hold left by an earlier maneuver (a ``Winding``'s last wound
+        particle, an ``Anchoring`` hand) stays where it is while the tips and
+        pinched bottoms move; a waypoint past the rope between them would
+        stretch that rope by the difference. The waypoints are pulled back
+        (``within_holds``, with the crossing's ``slack``); the held particles
+        that limited them are named if the crossing then fails.
+        """
+        moving = {int(i) for idx, _, _ in self.moves for i in np.atleast_1d(idx)}
+        for k, (idx, pos, ways) in enumerate(self.moves):
+            idx = np.atleast_1d(idx)
+            rope = self.c if self.c.start <= int(idx[0]) < self.c.end else self.t
+            holds = rope_holds(self.world, rope, moving)
+            if not holds:
+                continue
+            out = []
+            for q in ways:
+                q, h = within_holds(q, float(idx.mean()), holds, rope.rod_length, self.params.slack, pos)
+                if h is not None:  # named by index along the rope, as sites are
+                    first = self.world._rope(base_name(rope.name)).start
+                    self.limits.append((base_name(rope.name), int(round(float(idx.mean()))) - first, h - first))
+                out.append(q)
+            self.moves[k] = (idx, pos, out)
 
     def _spread(self, x: np.ndarray, bases, tips) -> tuple[np.ndarray, np.ndarray]:
         """Where the hands carry the two pinched bottoms: ``contact_spread`` apart about the knot.
@@ -372,6 +436,10 @@ class Crossing(Maneuver):
         if self.ticks > 4 * w.fps + self.total / p.speed * w.fps:
             self.message = (f"the strands pass {near:.3f} m apart after the tips arrived "
                             f"(a crossing needs at most {self.gap + self.c.radius + self.t.radius:.3f} m)")
+            held = sorted(set(self.limits))
+            if held:
+                self.message += "; held back by " + ", ".join(
+                    f"{body}'s particle {h} (held, {abs(m - h)} rods from the moved particle {m})" for body, m, h in held)
             return Status.FAILED
         return Status.RUNNING
 
