@@ -12,6 +12,7 @@ from sandbox.collision.capsule_np import segment_segment_closest
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
 from sandbox.constraints.capsule import segment_closest
 from sandbox.levels import load_level_from_string
+from tests.levelkit import world_from_text as _world
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MAX_NEIGHBOURS = 256
@@ -350,9 +351,13 @@ def test_self_collision_lists_miss_no_contact():
     assert sc.overflows[None] > 10
 
 
-def _contact_pass_reference(x, w, seg, rope, rad, skip, mode):
-    """One rope contact pass in float64 NumPy, brute force over every allowed pair (no slip: no friction)."""
-    from sandbox.collision.ropecollision import RELAX
+def _contact_pass_reference(x, w, seg, rope, rad, skip, mode, rods=None):
+    """One rope contact pass in float64 NumPy, brute force over every allowed pair (no slip: no friction).
+
+    ``rods``: each segment's rest length (m); a particle then moves at most
+    THROW of its shortest one.
+    """
+    from sandbox.collision.ropecollision import RELAX, THROW
 
     s_idx, t_idx = np.meshgrid(np.arange(len(seg)), np.arange(len(seg)), indexing="ij")
     s_idx, t_idx = s_idx.ravel(), t_idx.ravel()
@@ -381,6 +386,13 @@ def _contact_pass_reference(x, w, seg, rope, rad, skip, mode):
     np.add.at(acc, a1, wa1[:, None] * corr * (wa1 > 0)[:, None])
     if mode == "average":
         acc /= np.maximum(count, 1.0)[:, None]
+    if rods is not None:
+        cap = np.full(len(x), np.inf)
+        np.minimum.at(cap, seg[:, 0], THROW * rods)
+        np.minimum.at(cap, seg[:, 1], THROW * rods)
+        move = np.linalg.norm(acc, axis=1)
+        over = move > cap
+        acc[over] *= (cap[over] / move[over])[:, None]
     return x + acc, int(hit.sum())
 
 
@@ -416,8 +428,9 @@ def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mod
     rad = np.array([r.radius for r in data.ropes])[data.segment_rope]
     rod = np.array([r.rod_length for r in data.ropes])
     skip = np.maximum(2, np.ceil(1.0 + 2.0 * np.array([r.radius for r in data.ropes]) / rod - 1e-9))
+    rods = rod[data.segment_rope]
     want, contacts = _contact_pass_reference(x32.astype(np.float64), w, data.segments, data.segment_rope, rad, skip,
-                                             mode)
+                                             mode, rods)
     assert contacts > 50, "too few contacts for the test to mean anything"
     moved = np.abs(want - x32).max()
     assert moved > 1e-3
@@ -430,3 +443,42 @@ def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mod
         assert momentum < 1e-4 * scale, (momentum, scale)
     else:
         assert momentum > 1e-2 * scale, (momentum, scale)
+
+
+LEVER = """
+version: 1
+name: lever
+scene:
+  gravity: [0, 0, 0]
+  ropes:
+    - {name: A, points: [[0, 0.5, 0], [0.1, 0.5, 0]], rod_length: 0.01, radius: 0.006, pins: [start, end]}
+    - {name: B, points: [[X, 0.49, 0.007], [X, 0.51, 0.007]], rod_length: 0.01, radius: 0.006, pins: [0, 1, 2]}
+sim: {fps: 60, substeps: 1, frames: 1, rope_contacts: MODE}
+fsm:
+  - {run: Wait, with: {seconds: 1.0}}
+"""
+
+
+@pytest.mark.parametrize("mode", ["average", "split"])
+@pytest.mark.parametrize("x_cross", [0.095, 0.098])
+def test_rope_contact_next_to_held_particles_moves_a_particle_at_most_half_a_rod(mode, x_cross):
+    """A held rope B presses 5 mm into A's last segment, whose far end is held: pushing the contact out
+    through the lever (1 - u) would move A's particle 9 by pen / (1 - u), 1 and 2.5 cm; one pass moves
+    it half a rod, away from B, and no held particle moves."""
+    from sandbox.collision.ropecollision import THROW
+
+    w = _world(LEVER.replace("X", str(x_cross)).replace("MODE", mode))
+    a = w._rope("A")
+    x0 = w.positions().astype(np.float64)
+    w.solver.begin_frame()
+    w.solver.ropecol.solve()
+    x1 = w.positions().astype(np.float64)
+    u = (x_cross - 0.09) / 0.01
+    pen = 0.012 - 0.007
+    assert pen / (1.0 - u) > 0.009  # what the uncapped step would be: a rod's length or more
+    step = x1[a.start + 9] - x0[a.start + 9]
+    np.testing.assert_allclose(np.linalg.norm(step), THROW * 0.01, rtol=1e-5)
+    # Away from B (its axis is 7 mm in +z; A's segment before also touches B's end, hence a little -x).
+    assert step[2] < -0.95 * np.linalg.norm(step) and abs(step[1]) < 1e-6
+    held = [a.start, a.end - 1] + list(range(w._rope("B").start, w._rope("B").end))
+    np.testing.assert_array_equal(x1[held], x0[held])

@@ -26,6 +26,9 @@ not take each one's full correction. Two ways (``sim.rope_contacts``):
   contact takes the full projection, and a stack of contacts on one
   particle closes as a whole instead of at RELAX / k of the rate.
 
+A pass moves no particle by more than half of its shortest rod
+(``THROW``), which only a contact next to held particles asks for.
+
 Same-rope pairs must be at least max(2, ceil(1 + 2 radius / rod)) segments
 apart: closer ones share a particle or overlap at rest (thick ropes).
 """
@@ -37,6 +40,12 @@ import taichi as ti
 from sandbox import runtime
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
 from sandbox.constraints.capsule import segment_closest
+
+# Most a contact pass moves a particle, in rods of its rope: a contact next
+# to a held particle (both segments held at that end) is pushed out through
+# a lever of (1 - u), and its linearised step grows as 1 / (1 - u) (a rod
+# thrown several times its length in one pass); the next passes finish it.
+THROW = 0.5
 
 # Over-relaxation of the balanced contact pass: a contact whose particles
 # have at most k contacts each is scaled by min(1, RELAX / k). The plain
@@ -57,6 +66,8 @@ class RopeCollision:
             (balanced and split only).
         seg_a, seg_b: (n,) i32, segment starting / ending at each particle (-1).
         gap: (s,) f32, m, min over contacts of distance minus radii (metrics).
+        max_move: (n,) f32, m, most one pass moves each particle (``THROW``
+            of its shortest rod; 0 off the ropes).
     """
 
     def __init__(self, model, state, w, hit=None, normal=None, mode: str = "average") -> None:
@@ -102,6 +113,13 @@ class RopeCollision:
         runtime.defer(self.seg_a.from_numpy, seg_a)
         runtime.defer(self.seg_b.from_numpy, seg_b)
         self.rope_particles = np.flatnonzero((seg_a >= 0) | (seg_b >= 0)).astype(np.int32)
+        # Most one pass moves each particle (m): THROW of its shortest rod.
+        seg_len = np.linalg.norm(d.x0[d.segments[:, 1]] - d.x0[d.segments[:, 0]], axis=1)
+        cap = np.full(model.n, np.inf)
+        np.minimum.at(cap, d.segments[:, 0], THROW * seg_len)
+        np.minimum.at(cap, d.segments[:, 1], THROW * seg_len)
+        self.max_move = ti.field(ti.f32, shape=model.n)
+        runtime.defer(self.max_move.from_numpy, np.where(np.isfinite(cap), cap, 0.0).astype(np.float32))
 
     @ti.func
     def _midpoints(self):
@@ -226,6 +244,9 @@ class RopeCollision:
                 dx = acc
                 if ti.static(not self.counted):
                     dx = acc / ti.cast(cnt, ti.f32)
+                move = dx.norm()
+                if move > self.max_move[i]:  # a near-held lever's throw (see THROW)
+                    dx *= self.max_move[i] / move
                 self.st.x[i] = self.st.x[i] + dx
                 if ti.static(self.record):
                     la = acc.norm()
