@@ -26,8 +26,8 @@ not take each one's full correction. Two ways (``sim.rope_contacts``):
   contact takes the full projection, and a stack of contacts on one
   particle closes as a whole instead of at RELAX / k of the rate.
 
-A pass moves no particle by more than half of its shortest rod
-(``THROW``), which only a contact next to held particles asks for.
+A pass moves no particle by more than its shortest rod (``THROW``),
+which only a contact next to held particles asks for.
 
 Same-rope pairs must be at least max(2, ceil(1 + 2 radius / rod)) segments
 apart: closer ones share a particle or overlap at rest (thick ropes).
@@ -45,7 +45,7 @@ from sandbox.constraints.capsule import segment_closest
 # to a held particle (both segments held at that end) is pushed out through
 # a lever of (1 - u), and its linearised step grows as 1 / (1 - u) (a rod
 # thrown several times its length in one pass); the next passes finish it.
-THROW = 0.5
+THROW = 1.0
 
 # Over-relaxation of the balanced contact pass: a contact whose particles
 # have at most k contacts each is scaled by min(1, RELAX / k). The plain
