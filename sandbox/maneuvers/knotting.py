@@ -321,12 +321,13 @@ class Crossing(Maneuver):
             holds = rope_holds(self.world, rope, moving)
             if not holds:
                 continue
+            body = base_name(rope.name)
+            first = self.world._rope(body).start  # holds are named by index along the rope, as sites are
             out = []
             for q in ways:
                 q, h = within_holds(q, float(idx.mean()), holds, rope.rod_length, self.params.slack, pos)
-                if h is not None:  # named by index along the rope, as sites are
-                    first = self.world._rope(base_name(rope.name)).start
-                    self.limits.append((base_name(rope.name), int(round(float(idx.mean()))) - first, h - first))
+                if h is not None:
+                    self.limits.append((body, int(round(float(idx.mean()))) - first, h - first))
                 out.append(q)
             self.moves[k] = (idx, pos, out)
 
