@@ -108,6 +108,32 @@ def test_winding_pinch_keeps_the_next_particle_one_rod_from_the_crossing():
     np.testing.assert_array_equal(m._one_rod_from_held(free, x[free] + 0.003), x[free] + 0.003)
 
 
+def test_winding_keeps_the_driven_particle_within_reach_of_holds_further_along_the_rope():
+    """With the crossing pinched, a particle k >= 2 rods past it is commanded at most 1.005 k rods from
+    it (a command past that, here 0.3 m away, is pulled back along the line onto that reach); a command
+    within reach, or with no hold on the rope but its own, is left alone."""
+    text = (ROOT / "levels" / "rope_wind.yaml").read_text()
+    text = text.replace("handedness: 1}, timeout: 150}", "handedness: 1, pinch: true}, timeout: 300}")
+    w = _world(text)
+    while not (w.fsm.state == "1:Winding" and w.fsm._maneuver.k >= 4):
+        w.step()
+    m = w.fsm._maneuver
+    held, idx = m._particle(0), m._particle(m.k)
+    assert w.control.is_driven([held])[0] and not w.control.is_driven([idx - 1, idx + 1]).any()
+    k = idx - held
+    assert k >= 4
+    x = w.positions().astype(np.float64)
+    hand = w.control.target([held])[0].astype(np.float64)
+    far = hand + np.array([0.0, 0.3, 0.0])
+    np.testing.assert_allclose(m._one_rod_from_held(idx, far), hand + np.array([0.0, 1.005 * k * m.c.rod_length, 0.0]),
+                               atol=1e-7)
+    near = hand + np.array([0.0, 1.004 * k * m.c.rod_length, 0.0])
+    np.testing.assert_array_equal(m._one_rod_from_held(idx, near), near)
+    w.control.release([held])
+    np.testing.assert_array_equal(m._one_rod_from_held(idx, far), far)
+    assert np.linalg.norm(x[idx] - hand) < 0.3
+
+
 BENT = """
 version: 1
 name: bent

@@ -19,6 +19,7 @@ import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
+from sandbox.maneuvers.knotting import rope_holds, within_holds
 
 
 class WindingParams(Params):
@@ -55,6 +56,13 @@ class WindingParams(Params):
     # two targets on G cut inside the tube by up to R - sqrt(R^2 - l^2 / 4)
     # (1 mm for 6 mm ropes and 1 cm rods): a taut turn then presses T by that much.
     clearance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.1
+
+
+# How far a command may take the driven particle from another hold on C: k rods
+# times this. The chain step lays a rope driven past its reach on a straight
+# line, every rod stretched alike, so 1.005 keeps that within 0.5 %; a taut
+# rope's command a fraction of a millimetre past it is left to the chain step.
+REACH_SLACK = 1.005
 
 
 @register
@@ -246,16 +254,29 @@ class Winding(Maneuver):
         return Status.RUNNING
 
     def _one_rod_from_held(self, idx: int, pos: np.ndarray) -> np.ndarray:
-        """``pos`` put one rod from C's neighbour of ``idx`` when that neighbour is held.
+        """``pos`` kept within C's reach of the particles other hands hold, and one rod from a held neighbour.
 
-        Two held neighbours are joined by one rod that nothing else can
-        fix: a command nearer or further than its rest length (a pinched
-        crossing particle held where G was traced before T moved, the next
-        target sampled on the new G) would compress or stretch it.
+        A held particle k >= 2 rods along C's rope (the pinched crossing, a
+        carried tip, a hold left by an earlier maneuver) bounds where ``idx``
+        can go: at most ``REACH_SLACK`` k rods from it, or as far as it is
+        now where that is more (``within_holds``); a command past that would
+        stretch the rope between them by more than half the levels' 1 %
+        strain bar. Two held neighbours are joined by one rod that
+        nothing else can fix: a command nearer or further than its rest
+        length (a pinched crossing particle held where G was traced before T
+        moved, the next target sampled on the new G) would compress or
+        stretch it, so that rule has the last word.
         """
         w = self.world
+        holds = rope_holds(w, self.c, {idx - 1, idx, idx + 1})
+        x = None
+        if holds:
+            x = w.positions()
+            pos, _ = within_holds(pos, float(idx), holds, self.c.rod_length, REACH_SLACK,
+                                  x[idx].astype(np.float64))
         held = [h for h in (idx - 1, idx + 1) if self.c.start <= h < self.c.end and w.control.is_driven([h])[0]]
-        x = w.positions() if held else None  # one read-back of the particles, only when needed
+        if held and x is None:
+            x = w.positions()  # one read-back of the particles, only when needed
         for h in held:
             xh = x[h].astype(np.float64)
             v = pos - xh
