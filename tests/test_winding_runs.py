@@ -261,3 +261,22 @@ def test_winding_clearance_sets_the_tube_its_targets_lie_on(clearance):
     assert m.R == pytest.approx((1 + clearance) * (0.005 + 0.01))
     g = m.targets[: m.n_turns]
     np.testing.assert_allclose(np.hypot(g[:, 1] - 0.5, g[:, 2]), m.R, rtol=1e-2)  # T sags by under 0.1 mm
+
+
+# Rigid shifts of the whole scene, 0.2 mm to 2 mm (README, "How robust the winding levels are").
+SMALL_SHIFTS = [(0.0002, 0, 0), (0, 0.0002, 0), (0, 0, 0.0002), (0.001, 0, 0), (0, 0.001, 0), (0, 0, -0.001),
+                (0.002, 0, 0), (0, 0, 0.002)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("level", "least"), [("rope_wind.yaml", 8), ("rope_wind_moving.yaml", 6)])
+def test_winding_levels_pass_when_the_scene_is_shifted_slightly(level, least):
+    """A winding level passes wherever its scene sits to a millimetre or two, not only where it is
+    placed. Measured: rope_wind 8 of 8; rope_wind_moving 6 of 8 (its wraps whip at 0.2 mm in depth,
+    and 1 mm sideways ends at strain 1.06 %: averaged rope contacts, a known defect)."""
+    import sys
+    sys.path.insert(0, str(ROOT / "tools"))
+    from sweep_level import shifted_scene
+
+    passed = [_run(level, shifted_scene(ROOT / "levels" / level, shift))["success"] for shift in SMALL_SHIFTS]
+    assert sum(passed) >= least, passed
