@@ -101,11 +101,11 @@ def test_winding_pinch_keeps_the_next_particle_one_rod_from_the_crossing():
     held = m._particle(0)
     assert w.control.is_driven([held])[0]
     x = w.positions().astype(np.float64)
-    np.testing.assert_allclose(m._one_rod_from_held(held + 1, x[held] + [0.0, 0.003, 0.0]),
+    np.testing.assert_allclose(m._keep_holds(held + 1, x[held] + [0.0, 0.003, 0.0]),
                                x[held] + [0.0, m.c.rod_length, 0.0], atol=1e-7)
     free = m._particle(m.n - 1) + 3  # its neighbours are not held: the command is left alone
     assert not w.control.is_driven([free - 1, free + 1]).any()
-    np.testing.assert_array_equal(m._one_rod_from_held(free, x[free] + 0.003), x[free] + 0.003)
+    np.testing.assert_array_equal(m._keep_holds(free, x[free] + 0.003), x[free] + 0.003)
 
 
 def test_winding_keeps_the_driven_particle_within_reach_of_holds_further_along_the_rope():
@@ -125,12 +125,12 @@ def test_winding_keeps_the_driven_particle_within_reach_of_holds_further_along_t
     x = w.positions().astype(np.float64)
     hand = w.control.target([held])[0].astype(np.float64)
     far = hand + np.array([0.0, 0.3, 0.0])
-    np.testing.assert_allclose(m._one_rod_from_held(idx, far), hand + np.array([0.0, 1.005 * k * m.c.rod_length, 0.0]),
+    np.testing.assert_allclose(m._keep_holds(idx, far), hand + np.array([0.0, 1.005 * k * m.c.rod_length, 0.0]),
                                atol=1e-7)
     near = hand + np.array([0.0, 1.004 * k * m.c.rod_length, 0.0])
-    np.testing.assert_array_equal(m._one_rod_from_held(idx, near), near)
+    np.testing.assert_array_equal(m._keep_holds(idx, near), near)
     w.control.release([held])
-    np.testing.assert_array_equal(m._one_rod_from_held(idx, far), far)
+    np.testing.assert_array_equal(m._keep_holds(idx, far), far)
     assert np.linalg.norm(x[idx] - hand) < 0.3
 
 

@@ -226,7 +226,7 @@ class Winding(Maneuver):
         axis = self.tube.frame(s_ax)[0][0]
         if np.linalg.norm(self.pos - axis) < self.R:
             self.pos = on_tube
-        self.pos = self._one_rod_from_held(idx, self.pos)
+        self.pos = self._keep_holds(idx, self.pos)
         w.control.drive([idx], self.pos[None, :])
         if p.carry_tail > 0:
             self._carry_tail(target)
@@ -253,7 +253,7 @@ class Winding(Maneuver):
             return Status.DONE
         return Status.RUNNING
 
-    def _one_rod_from_held(self, idx: int, pos: np.ndarray) -> np.ndarray:
+    def _keep_holds(self, idx: int, pos: np.ndarray) -> np.ndarray:
         """``pos`` kept within C's reach of the particles other hands hold, and one rod from a held neighbour.
 
         A held particle k >= 2 rods along C's rope (the pinched crossing, a
@@ -269,14 +269,10 @@ class Winding(Maneuver):
         """
         w = self.world
         holds = rope_holds(w, self.c, {idx - 1, idx, idx + 1})
-        x = None
-        if holds:
-            x = w.positions()
-            pos, _ = within_holds(pos, float(idx), holds, self.c.rod_length, REACH_SLACK,
-                                  x[idx].astype(np.float64))
         held = [h for h in (idx - 1, idx + 1) if self.c.start <= h < self.c.end and w.control.is_driven([h])[0]]
-        if held and x is None:
-            x = w.positions()  # one read-back of the particles, only when needed
+        x = w.positions() if holds or held else None  # one read-back of the particles, only when needed
+        if holds:
+            pos, _ = within_holds(pos, float(idx), holds, self.c.rod_length, REACH_SLACK, x[idx].astype(np.float64))
         for h in held:
             xh = x[h].astype(np.float64)
             v = pos - xh
