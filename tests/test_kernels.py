@@ -301,7 +301,8 @@ def _self_collision_reference(x: np.ndarray, w: np.ndarray, cloth: np.ndarray, i
 
 def test_self_collision_lists_miss_no_contact():
     """Cloth self-collision over Verlet lists gives the brute-force corrections of all non-neighbour pairs:
-    after moves just under half the skin (lists kept), after a larger move (rebuilt) and with lists overflowing."""
+    after moves just under half the skin (lists kept), after larger moves of a few particles (lists
+    patched), of most (rebuilt) and with lists overflowing."""
     sim = Sandbox(load_level_from_string(CLOTHS_YAML, base_dir=ROOT), arch="cpu")
     world = sim.world
     solver = world.solver
@@ -329,18 +330,43 @@ def test_self_collision_lists_miss_no_contact():
     dist_a = check(xa)[0]
     assert sc.rebuilds[None] == built and sc.overflows[None] == 0
 
-    # Each particle moves just under half the skin (on top of a common shift): the lists stay.
+    # Each particle moves just under half the skin on top of a common shift (the mean move): the lists stay.
     step = rng.normal(size=xa.shape)
-    step *= 0.49 * sc.skin / np.linalg.norm(step, axis=1, keepdims=True)
+    step *= 0.46 * sc.skin / np.linalg.norm(step, axis=1, keepdims=True)
+    step -= step.mean(axis=0)
+    assert np.linalg.norm(step, axis=1).max() < 0.499 * sc.skin
     xb = xa + np.array([0.05, -0.03, 0.02]) + step
-    xb[w == 0] = xa[w == 0] + np.array([0.05, -0.03, 0.02])
     dist_b, near = check(xb)
-    assert sc.rebuilds[None] == built, "lists rebuilt: the kept-lists case was not tested"
+    assert (sc.rebuilds[None], sc.patches[None]) == (built, 0), "lists remade: the kept-lists case was not tested"
     closer = ~near & (dist_b < sc.target) & (dist_a >= sc.target)
     assert closer.sum() > 20, "too few pairs came into contact since the lists were built"
 
-    # One particle moves more than half the skin: rebuilt.
-    xb[100] += np.array([0.0, 0.6 * sc.skin, 0.0])
+    # Lists made afresh here; then a few particles move more than half the skin: only their lists and
+    # their partners' entries are redone (a patch), not every list.
+    sc.valid[None] = 0
+    check(xb)
+    built = sc.rebuilds[None]
+    patched = sc.patches[None]
+    movers = np.array([100, 101, 250, 300, 301, 302])
+    jolt = rng.normal(size=(len(movers), 3))
+    xb[movers] += sc.skin * (np.array([0.0, 0.8, 0.0]) + 0.25 * jolt / np.linalg.norm(jolt, axis=1, keepdims=True))
+    check(xb)
+    assert (sc.rebuilds[None], sc.patches[None]) == (built, patched + 1)
+    assert sc.n_dirty[None] == len(movers)
+
+    # Patches in a row, each moving a random tenth of the particles by up to 1.5 skins and all of them by a
+    # common shift of 2-4 cm (dirty pairs, dirty partners dropped and found again, references of different
+    # patches): the lists still give the brute-force corrections.
+    for _ in range(6):
+        movers = rng.choice(len(xb), len(xb) // 10, replace=False)
+        xb[movers] += 1.5 * sc.skin * rng.uniform(-1.0, 1.0, size=(len(movers), 3)) / np.sqrt(3.0)
+        xb += rng.uniform(0.02, 0.04) * rng.choice([-1.0, 1.0], size=3)
+        check(xb)
+    assert sc.rebuilds[None] == built and sc.patches[None] >= patched + 5
+
+    # More than half the particles move that far: all lists are rebuilt.
+    movers = rng.choice(len(xb), int(0.6 * len(xb)), replace=False)
+    xb[movers] += rng.normal(size=(len(movers), 3)) * sc.skin
     check(xb)
     assert sc.rebuilds[None] == built + 1
 

@@ -7,21 +7,39 @@ within two rows and columns of each other are excluded: the structural,
 shear and skip-one bending constraints keep them apart, and a flat sheet
 then has no self-contact candidates at all.
 
-Candidates come from Verlet lists: each particle keeps the non-excluded
-particles that were closer than ``thickness + skin`` when the lists were
-built, sorted by index. The lists are rebuilt (spatial hash, then a 27-cell
-scan) only when some particle has moved half the skin or more since then,
-moves measured from their common part; until then every pair now closer
-than the thickness was closer than ``thickness + skin`` at the build, so
-the lists miss no contact. Which pairs touch and the order in which they
-are summed do not depend on when the lists were rebuilt. A particle with
-more candidates than a list holds scans the hash cells around it instead.
+Candidates come from Verlet lists. Each particle keeps a reference
+position (``x_ref``, where it was when its list was last made, less the
+common move since then) and lists the non-excluded particles whose
+references are closer than ``thickness + skin``, sorted by index. Once
+some particle has moved half the skin or more from its reference (moves
+measured from their common part, the mean move) the lists are patched:
+the particles that moved ``PATCH_SHARE`` of that or more ("dirty") take
+their current position less the mean move as reference and scan the 27
+hash cells around it; the other lists drop their dirty partners and get
+back those still within reach. Every pair not listed was then at least
+``thickness + skin`` apart at its two references, and each particle has
+moved less than half the skin from its own beyond the common move, so the
+lists miss no contact. Where more than ``FULL_SHARE`` of the particles are
+dirty (a landing sheet), or some list is over capacity, all lists are
+rebuilt instead. A cloth lying on a box, whose particles at the edges creep
+past half the skin a few at a time, then costs patches of those few, not
+a rebuild of all (8 ms at 163 x 163 on 2 cores). Which pairs touch and the
+order in which they are summed do not depend on when or how the lists
+were made. A particle with more candidates than a list holds scans the
+hash cells around its reference instead.
 """
 
 
 import taichi as ti
 
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
+
+# Above this share of dirty particles the lists are rebuilt rather than patched.
+FULL_SHARE = 0.5
+# A patch takes in the particles that moved this share of half the skin or more.
+PATCH_SHARE = 0.5
+# Particles per block of the mean move's fixed-order sum.
+_BLOCK = 256
 
 
 @ti.func
@@ -56,13 +74,17 @@ class ClothSelfCollision:
         cand: (k, capacity) i32, candidate partners (cloth-relative ids),
             ascending; ``n_cand`` (k,) i32 their number, above ``capacity``
             for a particle that scans the hash instead.
-        x_ref: (k,) vec3 f32, m, positions when the lists were built.
+        x_ref: (k,) vec3 f32, m, each particle's position when its list was made.
+        dirty: (k,) i32, 1 for a particle that moved half the skin or more
+            from ``x_ref`` (set at each check).
         valid: () i32, 1 while the lists are good for the current positions.
-        move_lo, move_hi: () vec3 f32, m, bounding box of the moves since the build.
-        rebuilds, overflows: () i32, list builds so far; particles over
-            capacity at the last build.
-        sx, skey, scell: (k,) positions (m), packed (cloth, j, i) keys and
-            cells, copied in bucket order for the build's 27-cell scans.
+        block_move: (k / 256,) vec3 f32, m, sums of the moves from ``x_ref`` by blocks.
+        shift: () vec3 f32, m, the mean move (the common part) at the last check.
+        n_dirty: () i32, dirty particles at the last check.
+        rebuilds, patches, overflows: () i32, full list builds and patches so
+            far; particles over capacity after the last of either.
+        sx, skey, scell: (k,) reference positions (m), packed (cloth, j, i)
+            keys and cells, copied in bucket order for the 27-cell scans.
         dx: (k,) vec3 f32, m, correction accumulator.
         gap: (k,) f32, m, smallest distance minus thickness (metrics).
     """
@@ -81,6 +103,9 @@ class ClothSelfCollision:
         # Half the skin, less a little for rounding: a particle that moved this
         # far (squared, m^2) triggers a rebuild.
         self.moved_sq = (0.5 * self.skin * (1.0 - 1e-4)) ** 2
+        # A patch redoes every particle that moved PATCH_SHARE of that or more,
+        # so that particles creeping along together trigger one patch, not one each.
+        self.patch_sq = PATCH_SHARE**2 * self.moved_sq
         # Cells a little wider than the reach, so that a 27-cell scan cannot
         # miss a pair closer than the reach through rounding in cell_of.
         self.grid = HashGrid(self.count, self.reach * (1.0 + 1e-4))
@@ -88,10 +113,15 @@ class ClothSelfCollision:
         self.cand = ti.field(ti.i32, shape=(self.count, self.capacity))
         self.n_cand = ti.field(ti.i32, shape=self.count)
         self.x_ref = ti.Vector.field(3, ti.f32, shape=self.count)
+        self.dirty = ti.field(ti.i32, shape=self.count)
         self.valid = ti.field(ti.i32, shape=())
-        self.move_lo = ti.Vector.field(3, ti.f32, shape=())
-        self.move_hi = ti.Vector.field(3, ti.f32, shape=())
+        self.n_blocks = (self.count + _BLOCK - 1) // _BLOCK
+        self.block_move = ti.Vector.field(3, ti.f32, shape=self.n_blocks)
+        self.shift = ti.Vector.field(3, ti.f32, shape=())
+        self.n_dirty = ti.field(ti.i32, shape=())
+        self.n_far = ti.field(ti.i32, shape=())
         self.rebuilds = ti.field(ti.i32, shape=())
+        self.patches = ti.field(ti.i32, shape=())
         self.overflows = ti.field(ti.i32, shape=())
         self.dx = ti.Vector.field(3, ti.f32, shape=self.count)
         self.sx = ti.Vector.field(3, ti.f32, shape=self.count)
@@ -110,53 +140,102 @@ class ClothSelfCollision:
 
     @ti.func
     def _gather_sorted(self, go):
-        """Copy particle data into bucket order, so the build's neighbour scans read contiguous memory."""
+        """Copy reference positions and keys into bucket order, so the neighbour scans read contiguous memory."""
         for s in range(go * self.count):
             q = self.grid.entries[s]
             i = self.start + q
-            self.sx[s] = self.st.x[i]
+            self.sx[s] = self.x_ref[q]
             ij = self.model.grid_ij[i]
             self.skey[s] = (self.model.cloth_id[i] << 20) | (ij[1] << 10) | ij[0]
             self.scell[s] = self.grid.item_cell[q]
 
     @ti.func
+    def _near(self, ki, kj):
+        """Whether two packed (cloth, j, i) keys are rest neighbours (excluded)."""
+        return (ki >> 20) == (kj >> 20) \
+            and ti.abs(((ki >> 10) & 1023) - ((kj >> 10) & 1023)) <= self.ring \
+            and ti.abs((ki & 1023) - (kj & 1023)) <= self.ring
+
+    @ti.func
+    def _add_pair(self, p, q):
+        a = ti.atomic_add(self.n_cand[p], 1)
+        if a < self.capacity:
+            self.cand[p, a] = q
+        b = ti.atomic_add(self.n_cand[q], 1)
+        if b < self.capacity:
+            self.cand[q, b] = p
+
+    @ti.func
+    def _scan_from(self, s, dirty_only: ti.template()):
+        """Enter the pairs of the particle at bucket slot ``s`` closer than the reach (reference positions).
+
+        Each pair is tested once. In a full build: from the particle that
+        comes first in bucket order. In a patch (``dirty_only``): from the
+        dirty particle, or from the first of two dirty ones.
+        """
+        reach_sq = self.reach * self.reach
+        p = self.grid.entries[s]
+        xi = self.sx[s]
+        ki = self.skey[s]
+        ci = self.scell[s]
+        for o in range(27):
+            c = ci + neighbor_offset(o)
+            h = hash_cell(c, self.grid.mask)
+            lo = self.grid.start[h]
+            if ti.static(not dirty_only):
+                lo = ti.max(lo, s + 1)
+            for t in range(lo, self.grid.start[h + 1]):
+                # Nested tests, the most selective first: the distance;
+                # the cell (a bucket may hold other cells); then the rest
+                # neighbours.
+                if (xi - self.sx[t]).norm_sqr() < reach_sq:
+                    if (self.scell[t] == c).all():
+                        q = self.grid.entries[t]
+                        once = True
+                        if ti.static(dirty_only):
+                            once = self.dirty[q] == 0 or t > s
+                        if once and not self._near(ki, self.skey[t]):
+                            self._add_pair(p, q)
+
+    @ti.func
     def _build_lists(self, go):
         """Each particle's non-excluded partners closer than the reach, ascending (O(n k)).
 
-        Each pair is tested once, from the particle that comes first in bucket
-        order, and entered in both lists (atomic slots); sorting the lists
-        afterwards makes them independent of the thread schedule.
+        Each pair is tested once and entered in both lists (atomic slots);
+        sorting the lists afterwards makes them independent of the thread
+        schedule.
         """
-        reach_sq = self.reach * self.reach
         for k in range(go * self.count):
             self.n_cand[k] = 0
         for s in range(go * self.count):
-            p = self.grid.entries[s]
-            xi = self.sx[s]
-            ki = self.skey[s]
-            ci = self.scell[s]
-            self.x_ref[p] = xi
-            for o in range(27):
-                c = ci + neighbor_offset(o)
-                h = hash_cell(c, self.grid.mask)
-                for t in range(ti.max(self.grid.start[h], s + 1), self.grid.start[h + 1]):
-                    # Nested tests, the most selective first: the distance;
-                    # the cell (a bucket may hold other cells); then the rest
-                    # neighbours.
-                    if (xi - self.sx[t]).norm_sqr() < reach_sq:
-                        if (self.scell[t] == c).all():
-                            kj = self.skey[t]
-                            near = (ki >> 20) == (kj >> 20) \
-                                and ti.abs(((ki >> 10) & 1023) - ((kj >> 10) & 1023)) <= self.ring \
-                                and ti.abs((ki & 1023) - (kj & 1023)) <= self.ring
-                            if not near:
-                                q = self.grid.entries[t]
-                                a = ti.atomic_add(self.n_cand[p], 1)
-                                if a < self.capacity:
-                                    self.cand[p, a] = q
-                                b = ti.atomic_add(self.n_cand[q], 1)
-                                if b < self.capacity:
-                                    self.cand[q, b] = p
+            self._scan_from(s, False)
+
+    @ti.func
+    def _patch_lists(self, go):
+        """Drop the dirty partners from every list, then scan around each dirty particle (O(n + d k)).
+
+        A dirty particle's list is started afresh; a clean one keeps its
+        clean partners (their reference positions have not changed) and
+        gets its dirty ones from their scans.
+        """
+        for k in range(go * self.count):
+            if self.dirty[k]:
+                self.n_cand[k] = 0
+            else:
+                m = 0
+                for a in range(self.n_cand[k]):
+                    q = self.cand[k, a]
+                    if self.dirty[q] == 0:
+                        self.cand[k, m] = q
+                        m += 1
+                self.n_cand[k] = m
+        for s in range(go * self.count):
+            if self.dirty[self.grid.entries[s]]:
+                self._scan_from(s, True)
+
+    @ti.func
+    def _sort_lists(self, go):
+        """Sort every list by index (the order of the sums) and count the particles over capacity."""
         for k in range(go * self.count):
             m = self.n_cand[k]
             if m > self.capacity:
@@ -172,36 +251,69 @@ class ClothSelfCollision:
 
     @ti.func
     def refresh_f(self):
-        """Rebuild the candidate lists if some particle moved half the skin since the last build (O(n)).
+        """Patch or rebuild the candidate lists if some particle moved half the skin from its reference (O(n)).
 
         Moves are measured from their common part: a pair's distance changes
-        by at most the two particles' moves relative to any one shift, and
-        the centre of the moves' bounding box leaves the least. A falling
-        sheet then keeps its lists.
+        by at most the two particles' moves relative to any one shift. The
+        shift is the mean move, which a few particles that moved far do not
+        drag along (the centre of the moves' bounding box would: every other
+        particle would then count as moved). A falling sheet keeps its lists.
+        The mean is summed in fixed blocks, then the blocks in order, so it
+        does not depend on the thread schedule.
         """
-        self.move_lo[None] = ti.math.vec3(1e30)
-        self.move_hi[None] = ti.math.vec3(-1e30)
+        for b in range(self.n_blocks):
+            acc = ti.math.vec3(0.0)
+            for k in range(b * _BLOCK, ti.min((b + 1) * _BLOCK, self.count)):
+                acc += self.st.x[self.start + k] - self.x_ref[k]
+            self.block_move[b] = acc
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            acc = ti.math.vec3(0.0)
+            for b in range(self.n_blocks):
+                acc += self.block_move[b]
+            self.shift[None] = acc / self.count
+        shift = self.shift[None]
+        self.n_dirty[None] = 0
+        self.n_far[None] = 0
         for k in range(self.count):
-            d = self.st.x[self.start + k] - self.x_ref[k]
-            ti.atomic_min(self.move_lo[None], d)
-            ti.atomic_max(self.move_hi[None], d)
-        shift = 0.5 * (self.move_lo[None] + self.move_hi[None])
-        for k in range(self.count):
-            if (self.st.x[self.start + k] - self.x_ref[k] - shift).norm_sqr() >= self.moved_sq:
-                self.valid[None] = 0
-        go = 1 - self.valid[None]
+            m = (self.st.x[self.start + k] - self.x_ref[k] - shift).norm_sqr()
+            self.dirty[k] = ti.cast(m >= self.patch_sq, ti.i32)
+            if m >= self.patch_sq:
+                ti.atomic_add(self.n_dirty[None], 1)
+            if m >= self.moved_sq:
+                ti.atomic_add(self.n_far[None], 1)
+        full = 0
+        part = 0
+        if self.valid[None] == 0 or (self.n_far[None] > 0 and (
+                self.overflows[None] > 0 or self.n_dirty[None] > ti.static(FULL_SHARE * self.count))):
+            full = 1
+        elif self.n_far[None] > 0:
+            part = 1
+        go = full + part
         if go:
             self.overflows[None] = 0
-        self.grid.build_if_f(self.st.x, self.start, self.count, go)
+        for k in range(go * self.count):
+            if full:
+                self.x_ref[k] = self.st.x[self.start + k]
+            elif self.dirty[k]:
+                # In the clean particles' frame: its move from x_ref is the
+                # common shift, so a pair's change in distance stays bounded
+                # by the two particles' moves beyond one shift.
+                self.x_ref[k] = self.st.x[self.start + k] - shift
+        self.grid.build_if_f(self.x_ref, 0, self.count, go)
         self._gather_sorted(go)
-        self._build_lists(go)
-        if go:
+        self._build_lists(full)
+        self._patch_lists(part)
+        self._sort_lists(go)
+        if full:
             self.valid[None] = 1
             self.rebuilds[None] += 1
+        if part:
+            self.patches[None] += 1
 
     @ti.func
     def _scan_hash(self, k, xi, wi):
-        """Correction of particle k from a 27-cell scan around its cell at the last build (overflow path)."""
+        """Correction of particle k from a 27-cell scan around its reference's cell (overflow path)."""
         i = self.start + k
         acc = ti.math.vec3(0.0)
         cnt = 0
