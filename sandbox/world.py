@@ -89,6 +89,7 @@ class World:
                 self.model, self.state, self.control, gravity=scene.gravity, ground=ground,
                 objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
                 chain_sweeps=sim.chain_sweeps, chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts,
+                cloth_joint=sim.cloth_joint, cloth_joint_every=sim.cloth_joint_every,
             )
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
         # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).
@@ -262,6 +263,7 @@ class World:
                 m["vmax"] = vmax
                 return m
             self.state.restore(snap)
+            self.solver.forget()
             for (k, (p, r)) in zip(self.moving, obj_snap):
                 self.objects.place(k, p, r)
             if attempt < self.max_retries:  # a retry follows

@@ -27,3 +27,25 @@ def run_shipped(level: str, overrides: dict | None = None) -> dict:
     summary = json.loads((out / "summary.json").read_text())
     summary["exit_code"] = code
     return summary
+
+
+def solver_masses(w):
+    """Set the solver's per-substep inverse masses as a frame would (the model's, zero where driven); (n,) float64."""
+    import numpy as np
+
+    n = w.model.n
+    driven = w.control.is_driven(np.arange(n)).astype(bool)
+    inv_mass = np.where(driven, 0.0, w.solver.model.inv_mass.to_numpy()).astype(np.float64)
+    w.solver.w.from_numpy(inv_mass.astype(np.float32))
+    return inv_mass
+
+
+def random_contacts(rng, n: int, share: float = 0.25):
+    """``share`` of n particles touching, with random unit normals: (touching (n,) bool, normal (n, 3))."""
+    import numpy as np
+
+    touching = np.zeros(n, bool)
+    touching[rng.choice(n, int(n * share), replace=False)] = True
+    normal = rng.normal(size=(n, 3))
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    return touching, normal

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sandbox.solvers.rope_chain import BLOCKED, SLACK, THROW
-from tests.levelkit import world_from_text
+from tests.levelkit import random_contacts, solver_masses, world_from_text
 
 ROPES = """
 version: 1
@@ -142,16 +142,12 @@ def test_chain_kernel_matches_the_numpy_reference(with_contacts, overreach, bloc
         x[c1 - 1] = x[c0] + 1.03 * reach[-1] * u
     w.state.x.from_numpy(x.astype(np.float32))
     # The solver's per-substep inverse masses: the model's, zero where held (the pins).
-    driven = w.control.is_driven(np.arange(len(x))).astype(bool)
-    inv_mass = np.where(driven, 0.0, solver.model.inv_mass.to_numpy()).astype(np.float64)
-    solver.w.from_numpy(inv_mass.astype(np.float32))
+    inv_mass = solver_masses(w)
     n = len(x)
     touching = np.zeros(n, bool)
     normal = np.tile([0.0, 1.0, 0.0], (n, 1))
     if with_contacts:
-        touching[rng.choice(n, n // 4, replace=False)] = True
-        normal = rng.normal(size=(n, 3))
-        normal /= np.linalg.norm(normal, axis=1)[:, None]
+        touching, normal = random_contacts(rng, n)
     if blocked:
         # Rope A's particle after its pinned start touches with its normal 0.1 degrees off the
         # rod from the start: that rod's pivot is ~3e-6 of the free one under the restriction.

@@ -161,6 +161,17 @@ def test_chain_sweeps_range_and_round_trip():
     assert load_level_from_string(dump_level(level)) == level
 
 
+def test_cloth_joint_range_and_round_trip():
+    """``sim.cloth_joint`` takes 0..64 CG iterations and ``sim.cloth_joint_every`` 1..200; both survive dump and load."""
+    errs = errors_of(BASE.replace("macros:", "sim: {cloth_joint: 65, cloth_joint_every: 0}\nmacros:"))
+    messages = " | ".join(e.message for e in errs)
+    assert "65 is out of range; allowed [0, 64]" in messages
+    assert "0 is out of range; allowed [1, 200]" in messages
+    level = load_level_from_string(BASE.replace("macros:", "sim: {cloth_joint: 3, cloth_joint_every: 2}\nmacros:"))
+    assert (level.sim.cloth_joint, level.sim.cloth_joint_every) == (3, 2)
+    assert load_level_from_string(dump_level(level)) == level
+
+
 @pytest.mark.parametrize("mode", ["balanced", "split"])
 def test_rope_contacts_choices_and_round_trip(mode):
     """``sim.rope_contacts`` is average (default), balanced or split; anything else lists all three; it survives

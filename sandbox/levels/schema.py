@@ -396,7 +396,11 @@ class Sim(_Model):
     contact pass shares corrections among a particle's contacts: ``average``
     (per particle), ``balanced`` (per contact, equal and opposite) or ``split``
     (mass splitting: equal and opposite at the full rate; see
-    ``sandbox/collision/ropecollision.py``).
+    ``sandbox/collision/ropecollision.py``). ``cloth_joint`` is the number of
+    conjugate-gradient iterations of a Newton step that solves all rows and
+    columns of each inextensible cloth together, after the chain sweeps of
+    every iteration (0: none; see ``sandbox/solvers/cloth_joint.py``), on
+    every ``cloth_joint_every``-th substep of a frame and on its last one.
     """
 
     fps: between(int, 1, 1000) = 60
@@ -410,6 +414,8 @@ class Sim(_Model):
     chain_sweeps: between(int, 1, 16) = 1
     chain_tolerance: between(float, 0.0, 1.0) = 1e-3
     rope_contacts: RopeContacts = "average"
+    cloth_joint: between(int, 0, 64) = 0
+    cloth_joint_every: between(int, 1, 200) = 1
 
 
 class Budget(_Model):

@@ -47,23 +47,27 @@ BLOCKED = 1e-3
 THROW = 0.5
 
 
-def build_chains(data) -> list[list[np.ndarray]]:
-    """Chain groups of a model: [ropes + cloth rows, cloth columns].
-
-    Only inextensible bodies (stretch compliance 0) get chains.
-    """
+def cloth_rows_and_columns(data) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Particle indices of every row and every column of the inextensible cloths."""
     rows: list[np.ndarray] = []
     cols: list[np.ndarray] = []
-    for r in data.ropes:
-        if r.stretch_compliance == 0.0 and r.end - r.start >= 2:
-            rows.append(np.arange(r.start, r.end))
     for c in data.cloths:
         if c.stretch_compliance == 0.0:
             for j in range(c.nz):
                 rows.append(c.start + j * c.nx + np.arange(c.nx))
             for i in range(c.nx):
                 cols.append(c.start + np.arange(c.nz) * c.nx + i)
-    return [g for g in (rows, cols) if g]
+    return rows, cols
+
+
+def build_chains(data) -> list[list[np.ndarray]]:
+    """Chain groups of a model: [ropes + cloth rows, cloth columns].
+
+    Only inextensible bodies (stretch compliance 0) get chains.
+    """
+    rows = [np.arange(r.start, r.end) for r in data.ropes if r.stretch_compliance == 0.0 and r.end - r.start >= 2]
+    cloth_rows, cols = cloth_rows_and_columns(data)
+    return [g for g in (rows + cloth_rows, cols) if g]
 
 
 @ti.data_oriented

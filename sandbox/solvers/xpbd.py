@@ -13,12 +13,15 @@ Per substep (each pass O(n) in particles or constraints):
 5. rope capsule-capsule collisions (Eq. 5), Jacobi gather -- O(s k), k
    candidates per segment (bounded by the hash cell occupancy)
 6. cloth self-collision, Jacobi gather over per-particle candidate lists
-   (Verlet lists: rebuilt from a spatial hash only when some particle has
-   moved half their skin), rest neighbours excluded -- O(n k)
+   (Verlet lists: patched or rebuilt from a spatial hash only when some
+   particle has moved half their skin), rest neighbours excluded -- O(n k)
 7. ground and object contacts with friction (analytic or grid SDF) -- O(n)
+7b. optionally (``cloth_joint``), one Newton step on all rows and columns
+   of each cloth together, by preconditioned CG (``cloth_joint.py``) --
+   O(n) per CG iteration
 8. velocities from positions -- O(n)
 
-Steps 3-7 repeat ``iterations`` times. Only the passes the scene needs are
+Steps 3-7b repeat ``iterations`` times. Only the passes the scene needs are
 compiled in (``self.stages``, fixed when the solver is built). A whole
 substep is one fused kernel: every pass is a ``@ti.func`` whose loops stay
 parallel; launching each pass on its own (``profile_substep``) gives the
@@ -41,9 +44,11 @@ from sandbox.collision.ropecollision import RopeCollision
 from sandbox.collision.selfcollision import ClothSelfCollision
 from sandbox.constraints.distance import xpbd_distance
 from sandbox.model.model import Control, Model, State
+from sandbox.solvers.cloth_joint import JointClothProjection, cloth_chain_groups
 from sandbox.solvers.rope_chain import ChainProjection, build_chains
 
-PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP = range(10)
+PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP, \
+    JOINT = range(11)
 # Most iterations one fused substep kernel unrolls (the shipped levels use 1-4).
 FUSE_ITERATIONS = 4
 STAGE_NAMES = {
@@ -57,7 +62,14 @@ STAGE_NAMES = {
     VELOCITIES: "velocities",
     ROPE_INEXT: "chains",
     RESWEEP: "chain_resweeps",
+    JOINT: "cloth_joint",
 }
+
+
+def _without(stages, skip_self: bool, skip_joint: bool) -> tuple:
+    """``stages`` less self-collision and/or the joint cloth step."""
+    drop = ((SELF_LISTS, SELF_COLLIDE) if skip_self else ()) + ((JOINT,) if skip_joint else ())
+    return tuple(sid for sid in stages if sid not in drop)
 
 
 @ti.data_oriented
@@ -91,7 +103,7 @@ class XPBDSolver:
     def __init__(self, model: Model, state: State, control: Control, *, gravity, ground=None, objects=None,
                  iterations: int = 1, self_collision_every: int = 1, chain_sweeps: int = 1,
                  chain_tolerance: float = 1e-3, rope_contacts: str = "average",
-                 fuse_iterations: int | None = None) -> None:
+                 fuse_iterations: int | None = None, cloth_joint: int = 0, cloth_joint_every: int = 1) -> None:
         self.model = model
         self.st = state
         self.ctl = control
@@ -127,6 +139,9 @@ class XPBDSolver:
             if model.s >= 3 else None
         groups = build_chains(model.data)
         self.inext = ChainProjection(model, state, self.w, groups, *contact) if groups else None
+        cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
+        self.joint = JointClothProjection(model, state, self.w, cloth_groups, *contact, peeled=self.inext.peeled,
+                                          iterations=int(cloth_joint)) if cloth_groups else None
         pre = [PREDICT]
         if self.ropecol is not None:
             pre.append(ROPE_HASH)
@@ -152,6 +167,13 @@ class XPBDSolver:
                 it.append(RESWEEP)
         if self.has_ground or self.has_objects:
             it.append(CONTACTS)  # again: contacts have the last word in every iteration
+        if self.joint is not None:
+            # Rows and columns solved together where the sweeps leave them
+            # disagreeing (a box's vertices; see cloth_joint.py), after the
+            # contacts: it moves a particle in contact only along its surface,
+            # and a contact pass after it would stretch the rods again where
+            # it pushes the particles at a vertex outwards.
+            it.append(JOINT)
         post = []
         if self.ropecol is not None and self.inext is not None:
             # Rope lengths have the last word: a capsule push leaves a rod
@@ -159,21 +181,21 @@ class XPBDSolver:
             # restores Eq. 2 exactly and moves particles only along the rods.
             post.append(ROPE_INEXT)
         self.stages = tuple(pre + it * self.iterations + post + [VELOCITIES])
-        # The same substep without cloth self-collision, for substeps that skip it.
-        self.stages_lite = tuple(s for s in self.stages if s not in (SELF_LISTS, SELF_COLLIDE))
-        # Unfused: before; full chunks of `chunk` iterations, then the rest (each with
-        # and without self-collision); after.
+        # Unfused: before; full chunks of `chunk` iterations, then the rest; after.
         chunk = max(1, FUSE_ITERATIONS if fuse_iterations is None else int(fuse_iterations))
         self.fused = self.iterations <= chunk
         self.chunks = (self.iterations // chunk, self.iterations % chunk)
-        lite_it = [s for s in it if s not in (SELF_LISTS, SELF_COLLIDE)]
         self.stages_pre = tuple(pre)
-        self.stages_chunk = tuple(it * chunk)
-        self.stages_chunk_lite = tuple(lite_it * chunk)
-        self.stages_rest = tuple(it * self.chunks[1])
-        self.stages_rest_lite = tuple(lite_it * self.chunks[1])
         self.stages_post = tuple(post + [VELOCITIES])
+        # The same substep without cloth self-collision and/or the joint cloth
+        # step, for substeps that skip them: (skip self-collision, skip joint)
+        # -> (whole substep, a chunk of iterations, the rest of them).
+        self.variants = {
+            (ss, sj): tuple(_without(q, ss, sj) for q in (self.stages, it * chunk, it * self.chunks[1]))
+            for ss in (False, True) for sj in (False, True)
+        }
         self.self_collision_every = int(self_collision_every)
+        self.cloth_joint_every = int(cloth_joint_every)
         self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------ passes
@@ -277,6 +299,8 @@ class XPBDSolver:
             self.inext.solve_f()
         if ti.static(sid == RESWEEP):
             self.inext.resweep_f(self.chain_tolerance)
+        if ti.static(sid == JOINT):
+            self.joint.joint_f()
         if ti.static(sid == VELOCITIES):
             self._velocities(1.0 / dt)
 
@@ -337,33 +361,39 @@ class XPBDSolver:
         self.ctl.upload()
         self._begin_frame_k()
 
-    def _stages_for(self, k: int, substeps: int) -> bool:
-        """Whether substep k of a frame runs cloth self-collision."""
-        return self.self_collision_every == 1 or k == substeps - 1 or k % self.self_collision_every == 0
+    def _skips(self, k: int, substeps: int) -> tuple[bool, bool]:
+        """Whether substep k of a frame skips cloth self-collision, and the joint cloth step."""
+        last = k == substeps - 1
+        return (not (last or k % self.self_collision_every == 0), not (last or k % self.cloth_joint_every == 0))
 
     def substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
         """One substep (k of ``substeps``); ``frac`` is how far through the frame it ends."""
         gh, gmu = self._ground()
-        lite = self.stages_lite != self.stages and not self._stages_for(k, substeps)
+        whole, chunk, rest = self.variants[self._skips(k, substeps)]
         if self.fused:
-            self._run_k(self.stages_lite if lite else self.stages, dt, frac, gh, gmu)
+            self._run_k(whole, dt, frac, gh, gmu)
             return
         self._run_k(self.stages_pre, dt, frac, gh, gmu)
         for _ in range(self.chunks[0]):
-            self._run_k(self.stages_chunk_lite if lite else self.stages_chunk, dt, frac, gh, gmu)
+            self._run_k(chunk, dt, frac, gh, gmu)
         if self.chunks[1]:
-            self._run_k(self.stages_rest_lite if lite else self.stages_rest, dt, frac, gh, gmu)
+            self._run_k(rest, dt, frac, gh, gmu)
         self._run_k(self.stages_post, dt, frac, gh, gmu)
 
     def profile_substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
         """The same substep, one launch per pass, accumulating ``self.timings`` (ms)."""
         gh, gmu = self._ground()
-        for sid in (self.stages if self._stages_for(k, substeps) else self.stages_lite):
+        for sid in self.variants[self._skips(k, substeps)][0]:
             t0 = time.perf_counter()
             self._stage_k(sid, dt, frac, gh, gmu)
             ti.sync()
             name = STAGE_NAMES[sid]
             self.timings[name] = self.timings.get(name, 0.0) + 1e3 * (time.perf_counter() - t0)
+
+    def forget(self) -> None:
+        """Drop what carries over from one substep to the next besides the State (after a rollback)."""
+        if self.joint is not None:
+            self.joint.forget()
 
     def measure(self) -> dict:
         """Strain per body, penetration per particle and a NaN flag (NumPy)."""

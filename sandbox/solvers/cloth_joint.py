@@ -1,0 +1,277 @@
+"""Joint inextensibility of a cloth's rows and columns: one Newton step solved by preconditioned CG.
+
+The chain step (``rope_chain.py``) solves each row and each column of a
+cloth exactly, but one after the other: rows, then columns, then the rows
+again. Where the two disagree (cloth crossing a box's top vertex, where the
+net of rows and columns must shear hardest) that alternation is block
+Gauss-Seidel on a strongly coupled system and stalls: in ``drape_box`` 26
+edges stay 2-19 % stretched at the vertices, however many sweeps. Solved
+together (every structural edge of the cloth in one linearised system
+``(J W J^T) dlam = -C``, contact particles restricted to their tangent
+plane as in the chain step) the same state converges: taken from the end
+of a ``drape_box`` run, three such Newton steps bring every edge within
+0.8 % and six within 0.1 %, moving no particle by more than 2.3 mm.
+
+The system is solved by conjugate gradients preconditioned by the chain
+step itself: the tridiagonal blocks of the rows and of the columns
+(block Jacobi: each edge belongs to exactly one chain, so the blocks are
+disjoint and all chains are solved at once). One CG iteration is one
+product with ``J W J^T`` (matrix-free: a gather per particle over its at
+most four edges, then one pass over the edges) and one Thomas solve per
+chain: O(L) for L edges. ``iterations`` CG iterations make one Newton
+step, warm-started from the last step's multipliers: a cloth's tension
+changes little from one substep to the next, and in ``drape_box`` three
+warm iterations hold every edge within 1.5 % once it has landed, where
+eight cold ones leave 5 %. The step moves no particle by more than
+``THROW`` of a rod (the whole step is scaled back). Sums (CG's inner products) run in fixed
+blocks, then over the blocks in order, so results do not depend on the
+thread schedule.
+"""
+
+import numpy as np
+import taichi as ti
+
+from sandbox import runtime
+from sandbox.solvers.rope_chain import ChainProjection, cloth_rows_and_columns
+
+# Links per block of an inner product's fixed-order sum.
+_BLOCK = 64
+# A joint step moves no particle by more than this many rods.
+THROW = 0.5
+
+
+def cloth_chain_groups(data) -> list[list[np.ndarray]]:
+    """Rows and columns of every inextensible cloth: [rows, columns] (empty without such a cloth)."""
+    return [g for g in cloth_rows_and_columns(data) if g]
+
+
+@ti.data_oriented
+class JointClothProjection(ChainProjection):
+    """One joint Newton step on every row and column of the inextensible cloths.
+
+    Args:
+        model, state, w, contact, normal: as for ``ChainProjection``.
+        groups: ``cloth_chain_groups(model.data)``.
+        peeled: the chain step's peel flags (n,) i32, shared, so that a
+            particle the chain step lets leave its surface is free here too.
+        iterations: CG iterations per Newton step.
+
+    Fields (L links, P particles of the model):
+        lam, rr, z, p, ap: (L,) f32, CG's multipliers (m; kept from one
+            step to the next as its warm start), residual,
+            preconditioned residual, direction and A times direction.
+        dmod, inert: (L,) f32 / i32, the preconditioner's Thomas factors
+            (pivots; ``cp`` holds the super-diagonal ratios) and rows whose
+            both ends cannot move along the rod (left out).
+        adj, sgn: (P, 4) i32 / f32, each particle's links (-1: none) and the
+            sign of its gradient (+1 at b, -1 at a).
+        g: (P,) vec3 f32, m, W J^T v per particle.
+        blk, chain_sum, dots: (L / 64,) and (chains,) f32 partial sums of
+            inner products; (4,) f32 finished ones.
+    """
+
+    def __init__(self, model, state, w, groups, contact=None, normal=None, peeled=None,
+                 iterations: int = 8) -> None:
+        super().__init__(model, state, w, groups, contact, normal)
+        if peeled is not None:
+            self.peeled = peeled
+        self.iterations = int(iterations)
+        L = self.n_links
+        self.lam = ti.field(ti.f32, shape=L)
+        self.rr = ti.field(ti.f32, shape=L)
+        self.z = ti.field(ti.f32, shape=L)
+        self.p = ti.field(ti.f32, shape=L)
+        self.ap = ti.field(ti.f32, shape=L)
+        self.dmod = ti.field(ti.f32, shape=L)
+        self.inert = ti.field(ti.i32, shape=L)
+        # Particle -> links: a particle is `a` of at most one link and `b` of
+        # at most one link in each group.
+        a_np = np.concatenate([np.asarray(c[:-1]) for g in groups for c in g]).astype(np.int64)
+        b_np = np.concatenate([np.asarray(c[1:]) for g in groups for c in g]).astype(np.int64)
+        adj = np.full((model.n, 4), -1, np.int32)
+        sgn = np.zeros((model.n, 4), np.float32)
+        fill = np.zeros(model.n, np.int64)
+        for ends, s in ((a_np, -1.0), (b_np, 1.0)):
+            for j, i in enumerate(ends):
+                adj[i, fill[i]] = j
+                sgn[i, fill[i]] = s
+                fill[i] += 1
+        assert fill.max() <= 4, "a particle in more than two links of a group"
+        self.movers = np.unique(np.concatenate([a_np, b_np])).astype(np.int32)
+        self.n_movers = len(self.movers)
+        self.mover = ti.field(ti.i32, shape=self.n_movers)
+        self.adj = ti.Vector.field(4, ti.i32, shape=model.n)
+        self.sgn = ti.Vector.field(4, ti.f32, shape=model.n)
+        self.g = ti.Vector.field(3, ti.f32, shape=model.n)
+        runtime.defer(self.mover.from_numpy, self.movers)
+        runtime.defer(self.adj.from_numpy, adj)
+        runtime.defer(self.sgn.from_numpy, sgn)
+        self.n_blocks = (L + _BLOCK - 1) // _BLOCK
+        self.blk = ti.field(ti.f32, shape=self.n_blocks)
+        self.chain_sum = ti.field(ti.f32, shape=sum(len(g) for g in groups))
+        self.dots = ti.field(ti.f32, shape=4)
+        self.move = ti.field(ti.f32, shape=())
+        self.rod = float(np.min(np.linalg.norm(model.data.x0[b_np] - model.data.x0[a_np], axis=1)))
+
+    # ------------------------------------------------------------ pieces
+    @ti.func
+    def _sum_blocks(self, slot: ti.template()):
+        """dots[slot] = the sum of the block sums, in order."""
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            acc = 0.0
+            for b in range(self.n_blocks):
+                acc += self.blk[b]
+            self.dots[slot] = acc
+
+    @ti.func
+    def _sum_chains(self, slot: ti.template()):
+        """dots[slot] = the sum of the per-chain sums, in order."""
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            acc = 0.0
+            for c in range(self.lo.shape[0]):
+                acc += self.chain_sum[c]
+            self.dots[slot] = acc
+
+    @ti.func
+    def _gather(self, v: ti.template()):
+        """g_i = W_i J_i^T v: particle i's move for multipliers v (the sum over its at most four links)."""
+        for q in range(self.n_movers):
+            i = self.mover[q]
+            acc = ti.math.vec3(0.0)
+            for s in ti.static(range(4)):
+                j = self.adj[i][s]
+                if j >= 0:
+                    acc += self.sgn[i][s] * v[j] * self.nrm[j]
+            self.g[i] = self._wapply(i, acc)
+
+    @ti.func
+    def _reg(self, j):
+        """The chain step's regulariser on link j's diagonal."""
+        return 1e-6 * (self.w[self.link_a[j]] + self.w[self.link_b[j]])
+
+    @ti.func
+    def _apply_a(self, v: ti.template(), out: ti.template(), slot: ti.template()):
+        """out = (J W J^T + reg) v (inert rows give 0), and dots[slot] = v . out."""
+        self._gather(v)
+        for b in range(self.n_blocks):
+            acc = 0.0
+            for j in range(b * _BLOCK, ti.min((b + 1) * _BLOCK, self.n_links)):
+                r = 0.0
+                if self.inert[j] == 0:
+                    r = self.nrm[j].dot(self.g[self.link_b[j]] - self.g[self.link_a[j]]) + self._reg(j) * v[j]
+                out[j] = r
+                acc += v[j] * r
+            self.blk[b] = acc
+        self._sum_blocks(slot)
+
+    @ti.func
+    def _factor(self):
+        """Thomas factors of every chain's tridiagonal block (all chains in parallel)."""
+        for c in range(self.lo.shape[0]):
+            lo = self.lo[c]
+            hi = self.hi[c]
+            for j in range(lo, hi):
+                a = self.link_a[j]
+                b = self.link_b[j]
+                n = self.nrm[j]
+                diag = self._wdot(a, n, n) + self._wdot(b, n, n) + self._reg(j)
+                sub = 0.0
+                if j > lo:
+                    sub = -self._wdot(a, self.nrm[j - 1], n)
+                inert = diag <= 1e-9 * (self.w[a] + self.w[b] + 1e-30)
+                self.inert[j] = ti.cast(inert, ti.i32)
+                if inert:
+                    diag = 1.0
+                    sub = 0.0
+                if j > lo:
+                    diag = diag - sub * self.cp[j - 1]
+                sup = 0.0
+                if j + 1 < hi and not inert:
+                    sup = -self._wdot(b, n, self.nrm[j + 1])
+                self.dmod[j] = diag
+                self.cp[j] = sup / diag
+                # The sub-diagonal entry, for the solves: A[j, j-1].
+                self.res[j] = sub if j > lo else 0.0
+
+    @ti.func
+    def _precondition(self, rhs: ti.template(), out: ti.template(), slot: ti.template()):
+        """out = M^-1 rhs, M the chains' tridiagonal blocks (factored by ``_factor``); dots[slot] = rhs . out."""
+        for c in range(self.lo.shape[0]):
+            lo = self.lo[c]
+            hi = self.hi[c]
+            for j in range(lo, hi):
+                r = rhs[j]
+                if self.inert[j]:
+                    r = 0.0
+                if j > lo:
+                    r = r - self.res[j] * out[j - 1]
+                out[j] = r / self.dmod[j]
+            acc = 0.0
+            for jj in range(lo, hi):
+                j = hi - 1 - (jj - lo)
+                if j + 1 < hi:
+                    out[j] = out[j] - self.cp[j] * out[j + 1]
+                acc += rhs[j] * out[j]
+            self.chain_sum[c] = acc
+        self._sum_chains(slot)
+
+    # ------------------------------------------------------------ the step
+    @ti.func
+    def joint_f(self):
+        """One Newton step of all rows and columns together (``iterations`` PCG iterations)."""
+        self._linearise(0, self.n_links)
+        for j in range(self.n_links):
+            # Right-hand side -C, kept in rr while res holds the factors.
+            self.rr[j] = self.res[j]
+        self._factor()
+        for j in range(self.n_links):
+            if self.inert[j]:
+                self.rr[j] = 0.0
+                self.lam[j] = 0.0
+        # Warm start: the last step's multipliers (a cloth's tension changes
+        # little from one substep to the next; zero at the start).
+        self._apply_a(self.lam, self.ap, 1)
+        for j in range(self.n_links):
+            self.rr[j] -= self.ap[j]
+        self._precondition(self.rr, self.z, 0)
+        for j in range(self.n_links):
+            self.p[j] = self.z[j]
+        for _ in ti.static(range(self.iterations)):
+            self._apply_a(self.p, self.ap, 1)
+            alpha = 0.0
+            if self.dots[1] > 1e-30:
+                alpha = self.dots[0] / self.dots[1]
+            for j in range(self.n_links):
+                self.lam[j] += alpha * self.p[j]
+                self.rr[j] -= alpha * self.ap[j]
+            self._precondition(self.rr, self.z, 2)
+            beta = 0.0
+            if self.dots[0] > 1e-30:
+                beta = self.dots[2] / self.dots[0]
+            self.dots[0] = self.dots[2]
+            for j in range(self.n_links):
+                self.p[j] = self.z[j] + beta * self.p[j]
+        # dx = W J^T lam, scaled back as a whole if it would throw a particle.
+        self._gather(self.lam)
+        self.move[None] = 0.0
+        for q in range(self.n_movers):
+            i = self.mover[q]
+            ti.atomic_max(self.move[None], self.g[i].norm())
+        s = 1.0
+        limit = ti.static(THROW * self.rod)
+        if self.move[None] > limit:
+            s = limit / self.move[None]
+        for q in range(self.n_movers):
+            i = self.mover[q]
+            self.st.x[i] = self.st.x[i] + s * self.g[i]
+
+    @ti.kernel
+    def joint(self):
+        """``joint_f`` as a kernel of its own."""
+        self.joint_f()
+
+    def forget(self) -> None:
+        """Start the next step cold (multipliers zero), as after a reset of the scene."""
+        self.lam.fill(0.0)
