@@ -265,14 +265,13 @@ def _cloth_stretch(sim: Sandbox, res: int, size: float) -> np.ndarray:
 
 
 def test_chain_sweeps_bring_cloth_over_box_edges_and_vertices_to_length():
-    """An 81 x 81 cloth (1 cm spacing) draped over drape_box's box: rows and columns crossing its top
-    edges and vertices stay stretched by tens of percent with one chain sweep; three bring every edge
-    within 3 %; the joint step after them (rows and columns solved together) within 0.5 % at the end
-    and 5 % at impact, where three sweeps alone leave 20 %; the cloth still rests on the box without
-    sinking in."""
+    """An 81 x 81 cloth (1 cm spacing) draped over drape_box's box: three chain sweeps bring every edge
+    crossing its top edges and vertices within 3 % at the end (one leaves tens of percent: README), but
+    leave 20 % at impact; the joint step after them (rows and columns solved together) brings every
+    edge within 0.5 % at the end and 5 % at impact; the cloth still rests on the box without sinking in."""
     res, size = 81, 0.8
     worst, run_worst = {}, {}
-    for sweeps, joint in ((1, 0), (3, 0), (3, 3)):
+    for sweeps, joint in ((3, 0), (3, 3)):
         overrides = {"scene.cloths.0.resolution": [res, res], "scene.cloths.0.size": [size, size],
                      "sim.chain_sweeps": sweeps, "sim.cloth_joint": joint, "sim.frames": 90}
         with Sandbox.from_level(LEVELS / "drape_box.yaml", arch="cpu", overrides=overrides) as sim:
@@ -287,8 +286,7 @@ def test_chain_sweeps_bring_cloth_over_box_edges_and_vertices_to_length():
             thickness = sim.world.cloths["cloth"].thickness
             assert d.min() > -0.1 * thickness
             assert (d < thickness).sum() > 0.2 * res * res  # draped over the top, not slid off
-    assert worst[1, 0] > 0.1
-    assert worst[3, 0] < min(0.03, worst[1, 0] / 4)
+    assert worst[3, 0] < 0.03
     assert worst[3, 3] < min(0.005, worst[3, 0] / 4)
     assert run_worst[3, 3] < 0.05 < 0.2 < run_worst[3, 0]
 
