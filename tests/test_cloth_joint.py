@@ -207,3 +207,17 @@ def test_a_step_starts_from_the_last_steps_multipliers():
     w.solver.forget()
     w.solver.joint.joint()
     np.testing.assert_allclose(w.positions(), cold, atol=3e-6)
+
+
+def test_joint_step_runs_on_every_kth_substep_and_the_last():
+    """``sim.cloth_joint_every: 3`` over 5 substeps: the joint step on substeps 0, 3 and 4 only; a
+    substep without it keeps every other pass in the same order; ``cloth_joint: 0`` builds no step."""
+    from sandbox.solvers.xpbd import JOINT
+
+    w = world_from_text(SHEET.replace("ITER", "2, cloth_joint_every: 3, substeps: 5"))
+    s = w.solver
+    runs = [JOINT in s.variants[s._skips(k, 5)][0] for k in range(5)]
+    assert runs == [True, False, False, True, True]
+    full, lite = s.variants[False, False][0], s.variants[False, True][0]
+    assert full.count(JOINT) == 1 and tuple(x for x in full if x != JOINT) == lite
+    assert world_from_text(SHEET.replace("ITER", "0")).solver.joint is None
