@@ -176,6 +176,10 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
     summary["stage_ms_per_frame"] = {k: float(np.median(v)) for k, v in stages.items()}
     if world is not None:
         summary["retries"] = world.retries_total
+        used = world.substep_frames
+        summary["substeps"] = {"fixed": world.substeps, "max": world.max_substeps,
+                               "per_frame": {str(k): used[k] for k in sorted(used)},
+                               "mean": sum(k * f for k, f in used.items()) / max(1, sum(used.values()))}
         summary["sim_time"] = world.time
         summary["max_strain"] = world.run_max["strain"]
         summary["max_penetration"] = world.run_max["penetration"]

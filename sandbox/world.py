@@ -7,6 +7,7 @@ positions. :class:`sandbox.api.Sandbox` wraps it for hosts.
 
 from __future__ import annotations
 
+import collections
 import pathlib
 import time
 
@@ -62,6 +63,8 @@ class World:
         self.substeps = int(sim.substeps)
         self.iterations = int(sim.iterations)
         self.max_retries = int(sim.max_retries)
+        self.max_substeps = max(self.substeps, int(sim.max_substeps or self.substeps))
+        self.substep_travel = float(sim.substep_travel)
         self.explode_speed = 200.0  # m/s: faster than anything a level should do
         scene = level.scene
         self.ground_height = None if scene.ground is None else float(scene.ground.height)
@@ -108,6 +111,11 @@ class World:
         self.time = 0.0
         self.retries_total = 0
         self.last_retries = 0
+        self.last_substeps = self.substeps
+        self.substep_frames: collections.Counter[int] = collections.Counter()  # substeps -> frames that took them
+        self._finest = min([r.rod_length for r in self.data.ropes]
+                           + [min(c.spacing) for c in self.data.cloths] or [np.inf])
+        self._gravity = float(np.linalg.norm(scene.gravity))
         self.systems_ms: dict[str, float] = {}
         self.stage_ms: dict[str, float] = {}
         self.profile_every = 0  # frames; 0 = never run the per-pass profile
@@ -235,6 +243,23 @@ class World:
         if profile:
             self.stage_ms = dict(self.solver.timings)
 
+    def frame_substeps(self, v: np.ndarray) -> int:
+        """Substeps for the frame that starts with velocities ``v``: ``sim.substeps``, or with
+        ``sim.max_substeps`` as many as keep the fastest particle's travel per substep within
+        ``sim.substep_travel`` of the finest rest length (a cloth's spacing, a rope's rod).
+
+        The speed is the largest now plus gravity over the frame; O(n) over the velocities that the
+        frame's snapshot reads back anyway.
+        """
+        if self.max_substeps == self.substeps or not np.isfinite(self._finest) or not len(v):
+            return self.substeps
+        vmax = float(np.sqrt((np.asarray(v, np.float64) ** 2).sum(axis=1).max()))
+        if not np.isfinite(vmax):
+            return self.max_substeps
+        reach = (vmax + self._gravity * self.dt) * self.dt
+        want = int(np.ceil(reach / (self.substep_travel * self._finest)))
+        return min(self.max_substeps, max(self.substeps, want))
+
     def step_physics(self) -> dict:
         """Advance the physics one frame, rolling back and retrying on blow-up.
 
@@ -250,7 +275,7 @@ class World:
                 self.control.drive(pins[held], rest[held] @ rot.T + pos)
         snap = self.state.save()
         obj_snap = [self.objects.pose(k) for k in self.moving] if self.moving else []
-        substeps = self.substeps
+        substeps = self.frame_substeps(snap[1])
         profile = self.profile_every > 0 and self.frame % self.profile_every == 0
         self.last_retries = 0
         for attempt in range(self.max_retries + 1):
@@ -261,6 +286,8 @@ class World:
                 self.frame += 1
                 self.time = self.frame * self.dt
                 m["vmax"] = vmax
+                self.last_substeps = substeps
+                self.substep_frames[substeps] += 1
                 return m
             self.state.restore(snap)
             self.solver.forget()
@@ -355,6 +382,7 @@ class World:
             "penetration": pen,
             "max_speed": m["vmax"],
             "retries": self.last_retries,
+            "substeps": self.last_substeps,
         }
         if self.fsm is not None:
             row["fsm_state"] = self.fsm.state

@@ -172,6 +172,32 @@ def test_cloth_joint_range_and_round_trip():
     assert load_level_from_string(dump_level(level)) == level
 
 
+def test_the_readme_example_level_is_valid():
+    """The level that opens the README's "Levels" section loads, with every sim key it lists."""
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = re.search(r"```yaml\n(version: 1\n.*?)```", readme, re.S).group(1)
+    level = load_level_from_string(text)
+    listed = set(re.findall(r"(\w+):", text[text.index("\nsim:"):text.index("\nmacros:")])) - {"sim"}
+    assert listed == set(type(level.sim).model_fields), "the example lists every sim key, and only those"
+
+
+def test_adaptive_substeps_range_and_round_trip():
+    """``sim.max_substeps`` takes substeps..200 (unset: a fixed count) and ``sim.substep_travel`` 0.01..1; a
+    maximum below ``substeps`` says both; both survive dump and load."""
+    errs = errors_of(BASE.replace("macros:", "sim: {max_substeps: 201, substep_travel: 0.0}\nmacros:"))
+    messages = " | ".join(e.message for e in errs)
+    assert "201 is out of range; allowed [1, 200]" in messages
+    assert "0.0 is out of range; allowed [0.01, 1]" in messages
+    text = BASE.replace("macros:", "sim: {substeps: 12, max_substeps: 8}\nmacros:")
+    err = only_error(text)
+    assert err.path == "sim.max_substeps" and err.line == line_of(text, "sim:")
+    assert "max_substeps (8) is below substeps (12)" in err.message and "12 to 200" in err.message
+    assert load_level_from_string(BASE).sim.max_substeps is None
+    level = load_level_from_string(BASE.replace("macros:", "sim: {substeps: 8, max_substeps: 8, substep_travel: 0.3}\nmacros:"))
+    assert (level.sim.max_substeps, level.sim.substep_travel) == (8, 0.3)
+    assert load_level_from_string(dump_level(level)) == level
+
+
 @pytest.mark.parametrize("mode", ["balanced", "split"])
 def test_rope_contacts_choices_and_round_trip(mode):
     """``sim.rope_contacts`` is average (default), balanced or split; anything else lists all three; it survives

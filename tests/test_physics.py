@@ -18,7 +18,7 @@ G = 9.81
 
 
 def _rod_level(p0, p1, *, pins=(), ground="false", gravity=(0.0, -G, 0.0), fps=60, substeps=10,
-               max_retries=3, radius=1e-3) -> str:
+               max_retries=3, radius=1e-3, adaptive="") -> str:
     """YAML of a one-rod rope (two particles) without damping or objects."""
     pins_yaml = "[" + ", ".join(pins) + "]"
     return f"""
@@ -34,7 +34,7 @@ scene:
       radius: {radius!r}
       damping: 0.0
       pins: {pins_yaml}
-sim: {{fps: {fps}, substeps: {substeps}, iterations: 1, max_retries: {max_retries}, frames: 10}}
+sim: {{fps: {fps}, substeps: {substeps}, iterations: 1, max_retries: {max_retries}, frames: 10{adaptive}}}
 fsm:
   - {{run: Wait, with: {{ticks: 100000}}}}
 """
@@ -75,6 +75,69 @@ def test_free_fall_matches_symplectic_euler_error():
     # Symplectic Euler gets the velocity of a constant force exactly: v_N = -g T.
     np.testing.assert_allclose(v[:, 1], -G * T, atol=n * float(np.spacing(np.float32(abs(yk[-1])))) / h)
     np.testing.assert_array_equal(v[:, 0], 0.0)
+
+
+def _spy_substeps(monkeypatch, world) -> list[int]:
+    """The substep count of every ``_physics`` call (attempts and retries alike)."""
+    tried = []
+    physics = world._physics
+
+    def spy(substeps, profile):
+        tried.append(substeps)
+        physics(substeps, profile)
+
+    monkeypatch.setattr(world, "_physics", spy)
+    return tried
+
+
+def test_adaptive_substeps_follow_the_speed_and_keep_free_fall_exact(monkeypatch):
+    """With ``max_substeps`` a frame takes ceil((v + g dt) dt / (travel h)) substeps, clamped to
+    [substeps, max_substeps] (v: the largest speed at the frame's start, h: the rod length): a falling rod
+    (v = g t) goes 8 (the floor), 11, 17, ..., 39, then 40 (the cap). Each frame is then symplectic Euler
+    with its own step, which the fall matches up to float32 rounding; without ``max_substeps`` the count
+    stays fixed."""
+    fps, travel, h, frames = 60, 0.05, 0.01, 12
+    dt = 1.0 / fps
+    sim = _sandbox(_rod_level((0.0, 0.0, 0.0), (h, 0.0, 0.0), fps=fps, substeps=8,
+                              adaptive=f", max_substeps: 40, substep_travel: {travel}"))
+    tried = _spy_substeps(monkeypatch, sim.world)
+    want, rows = [], []
+    y, v, bound, steps = 0.0, 0.0, 0.0, []
+    for f in range(frames):
+        n = min(40, max(8, math.ceil((abs(v) + G * dt) * dt / (travel * h))))
+        want.append(n)
+        for _ in range(n):  # symplectic Euler with step dt / n: v -= g h', y += v h'
+            v -= G * dt / n
+            y += v * dt / n
+            steps.append(abs(y))
+        rows.append(sim.step())
+    assert want[:3] == [8, 11, 17] and want[5:8] == [33, 39, 40] and want[-1] == 40
+    assert tried == want and [r["substeps"] for r in rows] == want
+    # Float32 rounding of every position, carried by all later steps (as in the fixed-step test).
+    N = len(steps)
+    bound = float(np.sum((N - np.arange(N)) * np.spacing(np.asarray(steps, np.float32))))
+    T = frames * dt
+    y_fixed = -0.5 * G * T * T - 0.5 * G * (dt / 8) * T  # the fixed floor's fall (its Euler excess is larger)
+    assert bound < abs(y_fixed - y) / 3, "the float32 bound must tell the adaptive steps from fixed ones"
+    np.testing.assert_allclose(sim.rope_positions("rod")[:, 1], y, atol=bound)
+    np.testing.assert_allclose(sim.world.velocities()[:, 1], -G * frames * dt, rtol=1e-3)  # re-read from rounded positions
+    assert sim.world.substep_frames == {n: want.count(n) for n in set(want)}
+
+    fixed = _sandbox(_rod_level((0.0, 0.0, 0.0), (h, 0.0, 0.0), fps=fps, substeps=8))
+    tried = _spy_substeps(monkeypatch, fixed.world)
+    for _ in range(frames):
+        fixed.step()
+    assert tried == [8] * frames
+
+
+def test_retries_double_the_adaptive_count(monkeypatch):
+    """A frame that blows up is retried from its adaptive count: 16 (the cap, at 1e9 m/s^2), 32, 64, 128."""
+    sim = _sandbox(_rod_level((0.0, 1.0, 0.0), (0.01, 1.0, 0.0), gravity=(0.0, -1e9, 0.0), substeps=10,
+                              max_retries=3, adaptive=", max_substeps: 16"))
+    tried = _spy_substeps(monkeypatch, sim.world)
+    with pytest.raises(SimulationUnstable):
+        sim.step()
+    assert tried == [16, 32, 64, 128]
 
 
 @pytest.mark.parametrize("solver", ["xpbd", "projection"])
@@ -268,27 +331,34 @@ def test_chain_sweeps_bring_cloth_over_box_edges_and_vertices_to_length():
     """An 81 x 81 cloth (1 cm spacing) draped over drape_box's box: three chain sweeps bring every edge
     crossing its top edges and vertices within 3 % at the end (one leaves tens of percent: README), but
     leave 20 % at impact; the joint step after them (rows and columns solved together) brings every
-    edge within 0.5 % at the end and 5 % at impact; the cloth still rests on the box without sinking in."""
+    edge within 0.5 % at the end and 5 % at impact; adaptive substeps (up to 40 while the cloth moves
+    fast) bring the impact within 2 %; the cloth still rests on the box without sinking in."""
     res, size = 81, 0.8
-    worst, run_worst = {}, {}
-    for sweeps, joint in ((3, 0), (3, 3)):
+    worst, run_worst, substeps = {}, {}, {}
+    for sweeps, joint, most in ((3, 0, 10), (3, 3, 10), (3, 3, 40)):
+        key = sweeps, joint, most
         overrides = {"scene.cloths.0.resolution": [res, res], "scene.cloths.0.size": [size, size],
-                     "sim.chain_sweeps": sweeps, "sim.cloth_joint": joint, "sim.frames": 90}
+                     "sim.chain_sweeps": sweeps, "sim.cloth_joint": joint, "sim.frames": 90,
+                     "sim.max_substeps": most, "sim.substep_travel": 0.25}
         with Sandbox.from_level(LEVELS / "drape_box.yaml", arch="cpu", overrides=overrides) as sim:
-            run_worst[sweeps, joint] = 0.0
+            run_worst[key] = 0.0
             for f in range(90):
                 sim.step()
                 if f % 3 == 0:
-                    run_worst[sweeps, joint] = max(run_worst[sweeps, joint], float(_cloth_stretch(sim, res, size).max()))
-            worst[sweeps, joint] = float(_cloth_stretch(sim, res, size).max())
+                    run_worst[key] = max(run_worst[key], float(_cloth_stretch(sim, res, size).max()))
+            worst[key] = float(_cloth_stretch(sim, res, size).max())
+            substeps[key] = sim.world.substep_frames
             x = sim.cloth_positions("cloth").astype(np.float64)
             d = _box_sdf_from_mesh(sim, x)
             thickness = sim.world.cloths["cloth"].thickness
             assert d.min() > -0.1 * thickness
             assert (d < thickness).sum() > 0.2 * res * res  # draped over the top, not slid off
-    assert worst[3, 0] < 0.03
-    assert worst[3, 3] < min(0.005, worst[3, 0] / 4)
-    assert run_worst[3, 3] < 0.05 < 0.2 < run_worst[3, 0]
+    assert worst[3, 0, 10] < 0.03
+    assert worst[3, 3, 10] < min(0.005, worst[3, 0, 10] / 4)
+    assert run_worst[3, 3, 10] < 0.05 < 0.2 < run_worst[3, 0, 10]
+    assert worst[3, 3, 40] < 0.005 and run_worst[3, 3, 40] < min(0.02, run_worst[3, 3, 10] / 2)
+    assert substeps[3, 3, 10] == {10: 90}
+    assert max(substeps[3, 3, 40]) > 20 and substeps[3, 3, 40][10] > 45  # more only while it moves fast
 
 
 @pytest.mark.slow
@@ -360,14 +430,7 @@ def test_explosion_rolls_back_and_raises(monkeypatch):
     sim = _sandbox(_rod_level((0.0, 1.0, 0.0), (0.01, 1.0, 0.0), gravity=(0.0, -1e9, 0.0), substeps=10,
                               max_retries=3))
     world = sim.world
-    tried = []
-    physics = world._physics
-
-    def spy(substeps, profile):
-        tried.append(substeps)
-        physics(substeps, profile)
-
-    monkeypatch.setattr(world, "_physics", spy)
+    tried = _spy_substeps(monkeypatch, world)
     x0, v0 = world.positions().copy(), world.velocities().copy()
     with pytest.raises(SimulationUnstable) as info:
         sim.step()

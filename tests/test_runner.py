@@ -86,7 +86,8 @@ def test_completed_run_writes_every_output(two_runs):
     rows = _metrics(out)
     assert [r["frame"] for r in rows] == list(range(1, FRAMES + 1))
     for r in rows:
-        assert set(r["strain"]) == {"cord", "sheet"} and r["retries"] == 0
+        assert set(r["strain"]) == {"cord", "sheet"} and r["retries"] == 0 and r["substeps"] == 4
+    assert s["substeps"] == {"fixed": 4, "max": 4, "per_frame": {"4": FRAMES}, "mean": 4.0}
 
     with np.load(out / "state.npz") as st:
         assert {"rope_cord", "cloth_sheet", "object_block", "frame", "time"} <= set(st.files)
@@ -293,6 +294,7 @@ def test_bench_level_reports_times_passes_strain_and_speed():
     assert all(v >= 0.0 for v in r["stage_ms"].values())
     assert set(r["final_strain"]) and all(np.isfinite(v) for v in r["final_strain"].values())
     assert 0.0 < r["final_max_speed"] < 200.0
+    assert r["substeps"] == {"mean": 4.0, "most": 4}  # the level's fixed count
 
 
 def test_hold_rest_holds_the_end_state_and_records_every_frame(tmp_path, monkeypatch):

@@ -200,7 +200,8 @@ def _wind(extra: str, until_k: int | None = None):
 @pytest.mark.parametrize("square", [False, True])
 def test_winding_exit_lays_the_tail_straight_out_of_the_turns(square):
     """``exit`` drives C's particles after the turns onto a line from G's end along its last tangent."""
-    w, m, _ = _wind("exit: 0.06" + (", exit_square: true" if square else ""))
+    w, m, i0_held_midway = _wind("exit: 0.06" + (", exit_square: true" if square else ""))
+    assert i0_held_midway is False  # without pinch the crossing particle is let go once the next is laid
     x = w.positions().astype(np.float64)
     turns = m.n_turns
     assert m.n == turns + 6  # 0.06 m at C's 0.01 m rods
@@ -221,6 +222,7 @@ def test_winding_exit_lays_the_tail_straight_out_of_the_turns(square):
     assert rec.max() == m._particle(turns - 1) and rec.min() == m._particle(0)
 
 
+@pytest.mark.slow  # the default run checks the pinch in test_knot_reach and its absence in the exit test
 def test_winding_pinch_holds_the_crossing_until_the_end():
     _, m, held_midway = _wind("pinch: true")
     assert held_midway
@@ -249,7 +251,7 @@ def test_self_knot_ties_a_trefoil_wherever_the_rope_hangs():
     assert tied >= 3, tied
 
 
-@pytest.mark.parametrize("clearance", [0.1, 0.3])
+@pytest.mark.parametrize("clearance", [pytest.param(0.1, marks=pytest.mark.slow), 0.3])
 def test_winding_clearance_sets_the_tube_its_targets_lie_on(clearance):
     """The targets lie on the bounding tube R = (1 + clearance)(r_C + r_T) around T's axis (straight here)."""
     text = (ROOT / "levels" / "rope_wind.yaml").read_text()

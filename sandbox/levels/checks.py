@@ -83,6 +83,19 @@ def check_names(data: Any) -> list[Finding]:
     return out
 
 
+def check_sim(data: Any) -> list[Finding]:
+    """An adaptive substep count needs room above the fixed one: ``max_substeps >= substeps``."""
+    sim = data.get("sim")
+    if not isinstance(sim, dict):
+        return []
+    most, least = sim.get("max_substeps"), sim.get("substeps", 10)
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (most, least)) or most >= least:
+        return []
+    return [Finding(("sim", "max_substeps"),
+                    f"max_substeps ({most}) is below substeps ({least}): allowed is {least} to 200 (at least substeps), "
+                    "or no max_substeps for a fixed count")]
+
+
 def check_camera(data: Any) -> list[Finding]:
     """The ropes a camera follows must be ropes of the scene."""
     camera = data.get("scene", {}).get("camera") if isinstance(data.get("scene"), dict) else None

@@ -160,6 +160,7 @@ def _validate(
         findings += convert(exc, Level, data)
     findings += checks.check_names(data)
     findings += checks.check_camera(data)
+    findings += checks.check_sim(data)
     findings += checks.check_objects(data, base_dir)
 
     macros: dict[str, Macro] = {}

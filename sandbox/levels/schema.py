@@ -401,6 +401,12 @@ class Sim(_Model):
     columns of each inextensible cloth together, after the chain sweeps of
     every iteration (0: none; see ``sandbox/solvers/cloth_joint.py``), on
     every ``cloth_joint_every``-th substep of a frame and on its last one.
+    ``max_substeps`` (at least ``substeps``) makes the substep count adaptive:
+    each frame takes as many as keep the fastest particle (its speed at the
+    end of the last frame plus gravity over one frame) within
+    ``substep_travel`` of the finest rest length (a cloth's spacing, a rope's
+    rod) per substep, never fewer than ``substeps`` nor more than
+    ``max_substeps``. Unset, every frame takes ``substeps``.
     """
 
     fps: between(int, 1, 1000) = 60
@@ -416,6 +422,8 @@ class Sim(_Model):
     rope_contacts: RopeContacts = "average"
     cloth_joint: between(int, 0, 64) = 0
     cloth_joint_every: between(int, 1, 200) = 1
+    max_substeps: between(int, 1, 200) | None = None
+    substep_travel: between(float, 0.01, 1.0) = 0.35
 
 
 class Budget(_Model):
