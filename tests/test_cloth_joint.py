@@ -186,8 +186,10 @@ def test_a_step_that_would_throw_a_particle_is_scaled_back():
 
 
 def test_a_step_starts_from_the_last_steps_multipliers():
-    """The second step is warm-started from the first one's multipliers (as the reference with lam0);
-    after ``forget`` a step starts cold again."""
+    """The second step is warm-started from WARM_START of the first one's multipliers (as the reference
+    with lam0 so scaled, not with the whole of them); after ``forget`` a step starts cold again."""
+    from sandbox.solvers.cloth_joint import WARM_START
+
     w = _sheet(3)
     rng = np.random.default_rng(11)
     x, inv_mass, rest, touching, normal = _prepare(w, rng)
@@ -198,9 +200,11 @@ def test_a_step_starts_from_the_last_steps_multipliers():
     moved = (first + rng.normal(scale=0.002, size=first.shape)).astype(np.float32)
     w.state.x.from_numpy(moved)
     moved = moved.astype(np.float64)
-    warm = joint_step_reference(moved, inv_mass, rest, touching, normal, iterations=3, lam0=lam)[0]
+    warm = joint_step_reference(moved, inv_mass, rest, touching, normal, iterations=3, lam0=WARM_START * lam)[0]
+    whole = joint_step_reference(moved, inv_mass, rest, touching, normal, iterations=3, lam0=lam)[0]
     cold = joint_step_reference(moved, inv_mass, rest, touching, normal, iterations=3)[0]
-    assert np.abs(warm - cold).max() > 1e-4
+    assert 0.0 < WARM_START < 1.0
+    assert np.abs(warm - cold).max() > 1e-4 and np.abs(warm - whole).max() > 2e-5
     w.solver.joint.joint()
     np.testing.assert_allclose(w.positions(), warm, atol=3e-6)
     w.state.x.from_numpy(moved.astype(np.float32))
