@@ -66,6 +66,26 @@ def test_two_processes_give_bitwise_equal_state(two_runs):
         assert sa["rope_cord"][:, 1].max() < 0.3 - 0.05
 
 
+def test_plot_frames_overlays_runs_from_their_metrics(two_runs, tmp_path):
+    """tools/plot_frames.py reads each run's metrics.jsonl (one point per frame) and writes one PNG;
+    a body the runs lack and a label count that does not match are errors that say so."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import plot_frames
+
+    s = plot_frames.frame_series(two_runs["a"], "sheet")
+    assert s["frame"] == list(range(1, FRAMES + 1)) and s["substeps"] == [4] * FRAMES
+    rows = _metrics(two_runs["a"])
+    assert s["strain"] == [r["strain"]["sheet"] for r in rows]
+    assert plot_frames.frame_series(two_runs["a"])["strain"] == [max(r["strain"].values()) for r in rows]
+    out = tmp_path / "frames.png"
+    plot_frames.plot_frames([two_runs["a"], two_runs["b"]], ["a", "b"], out)
+    assert out.stat().st_size > 1000
+    with pytest.raises(ValueError, match="no body 'rag'; bodies: cord, sheet"):
+        plot_frames.frame_series(two_runs["a"], "rag")
+    with pytest.raises(ValueError, match="one label per run"):
+        plot_frames.plot_frames([two_runs["a"]], ["a", "b"], out)
+
+
 def test_completed_run_writes_every_output(two_runs):
     """A completed run writes summary.json, one JSON line per frame, state.npz with every body, and PLY meshes."""
     out, proc = two_runs["a"], two_runs["ra"]
