@@ -197,7 +197,8 @@ def _wind(extra: str, until_k: int | None = None):
     return w, m, i0_held_midway
 
 
-@pytest.mark.parametrize("square", [False, True])
+# The plain exit in the slow run only: the square one takes the same path and also projects the tangent.
+@pytest.mark.parametrize("square", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_winding_exit_lays_the_tail_straight_out_of_the_turns(square):
     """``exit`` drives C's particles after the turns onto a line from G's end along its last tangent."""
     w, m, i0_held_midway = _wind("exit: 0.06" + (", exit_square: true" if square else ""))
