@@ -243,6 +243,12 @@ class World:
         if profile:
             self.stage_ms = dict(self.solver.timings)
 
+    @property
+    def mean_substeps(self) -> float:
+        """Substeps per frame over the frames run (``sim.substeps`` before the first)."""
+        frames = sum(self.substep_frames.values())
+        return sum(k * f for k, f in self.substep_frames.items()) / frames if frames else float(self.substeps)
+
     def frame_substeps(self, v: np.ndarray) -> int:
         """Substeps for the frame that starts with velocities ``v``: ``sim.substeps``, or with
         ``sim.max_substeps`` as many as keep the fastest particle's travel per substep within

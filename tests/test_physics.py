@@ -122,6 +122,7 @@ def test_adaptive_substeps_follow_the_speed_and_keep_free_fall_exact(monkeypatch
     np.testing.assert_allclose(sim.rope_positions("rod")[:, 1], y, atol=bound)
     np.testing.assert_allclose(sim.world.velocities()[:, 1], -G * frames * dt, rtol=1e-3)  # re-read from rounded positions
     assert sim.world.substep_frames == {n: want.count(n) for n in set(want)}
+    assert sim.world.mean_substeps == pytest.approx(sum(want) / frames)
 
     fixed = _sandbox(_rod_level((0.0, 0.0, 0.0), (h, 0.0, 0.0), fps=fps, substeps=8))
     tried = _spy_substeps(monkeypatch, fixed.world)
