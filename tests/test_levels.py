@@ -192,6 +192,8 @@ def test_adaptive_substeps_range_and_round_trip():
     err = only_error(text)
     assert err.path == "sim.max_substeps" and err.line == line_of(text, "sim:")
     assert "max_substeps (8) is below substeps (12)" in err.message and "12 to 200" in err.message
+    err = only_error(BASE.replace("macros:", "sim: {max_substeps: 8}\nmacros:"))  # against the default substeps
+    assert "max_substeps (8) is below substeps (10)" in err.message
     assert load_level_from_string(BASE).sim.max_substeps is None
     level = load_level_from_string(BASE.replace("macros:", "sim: {substeps: 8, max_substeps: 8, substep_travel: 0.3}\nmacros:"))
     assert (level.sim.max_substeps, level.sim.substep_travel) == (8, 0.3)

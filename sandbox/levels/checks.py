@@ -88,7 +88,9 @@ def check_sim(data: Any) -> list[Finding]:
     sim = data.get("sim")
     if not isinstance(sim, dict):
         return []
-    most, least = sim.get("max_substeps"), sim.get("substeps", 10)
+    from sandbox.levels.schema import Sim  # noqa: PLC0415 (the schema's own default, not a copy of it)
+
+    most, least = sim.get("max_substeps"), sim.get("substeps", Sim.model_fields["substeps"].default)
     if not all(isinstance(v, int) and not isinstance(v, bool) for v in (most, least)) or most >= least:
         return []
     return [Finding(("sim", "max_substeps"),
