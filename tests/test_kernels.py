@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 from sandbox.api import Sandbox
 from sandbox.collision.capsule_np import segment_segment_closest
+from sandbox.collision.contacts import friction_velocity, inelastic_velocity
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
 from sandbox.constraints.capsule import segment_closest
 from sandbox.levels import load_level_from_string
@@ -508,3 +509,47 @@ def test_rope_contact_next_to_held_particles_moves_a_particle_at_most_a_rod(mode
     assert step[2] < -0.95 * np.linalg.norm(step) and abs(step[1]) < 1e-6
     held = [a.start, a.end - 1] + list(range(w._rope("B").start, w._rope("B").end))
     np.testing.assert_array_equal(x1[held], x0[held])
+
+
+@ti.kernel
+def _contact_velocity_k(v: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+                        n: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+                        vs: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+                        dv: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                        out: ti.types.ndarray(dtype=ti.math.vec3, ndim=1)):
+    for i in range(v.shape[0]):
+        out[i] = friction_velocity(inelastic_velocity(v[i], n[i], vs[i]), n[i], dv[i], vs[i])
+
+
+def _contact_velocity_reference(v, n, vs, dv):
+    """Inelastic normal (no separation relative to the surface), then Coulomb friction on the slip (float64)."""
+    rel = v - vs
+    vn = np.einsum("ij,ij->i", rel, n)
+    out = v - np.maximum(vn, 0.0)[:, None] * n
+    rel = out - vs
+    vt = rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
+    lt = np.linalg.norm(vt, axis=1)
+    cut = np.where(lt > 1e-12, np.minimum(dv / np.maximum(lt, 1e-30), 1.0), 0.0)
+    return out - cut[:, None] * vt
+
+
+def test_contact_velocity_matches_numpy_reference():
+    """Inelastic contact and friction on random velocities, normals and moving surfaces, against float64 NumPy."""
+    rng = np.random.default_rng(7)
+    m = 2000
+    v = rng.normal(size=(m, 3)).astype(np.float32)
+    n = rng.normal(size=(m, 3))
+    n = (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(np.float32)
+    vs = (0.5 * rng.normal(size=(m, 3))).astype(np.float32)
+    dv = rng.uniform(0.0, 1.5, size=m).astype(np.float32)
+    out = np.zeros((m, 3), np.float32)
+    _contact_velocity_k(v, n, vs, dv, out)
+    ref = _contact_velocity_reference(*(a.astype(np.float64) for a in (v, n, vs, dv)))
+    np.testing.assert_allclose(out, ref, atol=2e-6)
+    # Invariants: nothing leaves the surface; the slip never grows and never reverses.
+    rel = out.astype(np.float64) - vs
+    assert (np.einsum("ij,ij->i", rel, n) <= 1e-6).all()
+    slip_before = (v - vs) - np.einsum("ij,ij->i", v - vs, n)[:, None] * n
+    slip_after = rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
+    assert (np.einsum("ij,ij->i", slip_after, slip_before) >= -1e-6).all()
+    assert (np.linalg.norm(slip_after, axis=1) <= np.linalg.norm(slip_before, axis=1) + 1e-6).all()

@@ -7,9 +7,29 @@ mu times the normal velocity change that the push produced (Coulomb's law
 at velocity level). Acting on velocities, friction never fights the
 distance constraints inside a substep, so a cloth held by friction over a
 box edge cannot lock into a stretched state.
+
+Contacts are inelastic: at the end of a substep a particle that touched a
+surface keeps no velocity away from it (relative to the surface). The push
+out of the surface is a position correction; read back as velocity it
+would throw the particle off again (a cloth lying over a box's vertex,
+pushed out by its own shear every substep, then jitters at ~0.5 m/s).
 """
 
 import taichi as ti
+
+# The friction budget (m/s) a contact records at least, so that a
+# frictionless contact is still seen (and made inelastic) by the velocity pass.
+CONTACT_FLAG = 1e-12
+
+
+@ti.func
+def inelastic_velocity(v, n, v_surface):
+    """``v`` less its velocity away from the surface along the normal ``n`` (relative to ``v_surface``)."""
+    vn = (v - v_surface).dot(n)
+    out = v
+    if vn > 0.0:
+        out = v - vn * n
+    return out
 
 
 @ti.func

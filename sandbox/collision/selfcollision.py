@@ -27,6 +27,14 @@ a rebuild of all (8 ms at 163 x 163 on 2 cores). Which pairs touch and the
 order in which they are summed do not depend on when or how the lists
 were made. A particle with more candidates than a list holds scans the
 hash cells around its reference instead.
+
+Self-contact is inelastic: the pushes a particle took in a substep are
+summed (``push``), and at the end of the substep (``settle_f``, in the
+velocity pass) its velocity along their direction loses what they put
+there, up to the push over the step and never past zero. Read back as
+velocity, a push would otherwise throw two layers of a fold apart, and
+folds lying on the ground would jitter (drape_box: 0.3-0.5 m/s at the end
+without it, 0.1-0.2 with it).
 """
 
 
@@ -124,6 +132,7 @@ class ClothSelfCollision:
         self.patches = ti.field(ti.i32, shape=())
         self.overflows = ti.field(ti.i32, shape=())
         self.dx = ti.Vector.field(3, ti.f32, shape=self.count)
+        self.push = ti.Vector.field(3, ti.f32, shape=self.count)  # this substep's pushes, summed
         self.sx = ti.Vector.field(3, ti.f32, shape=self.count)
         self.skey = ti.field(ti.i32, shape=self.count)
         self.scell = ti.Vector.field(3, ti.i32, shape=self.count)
@@ -355,6 +364,21 @@ class ClothSelfCollision:
         for k in range(self.count):
             i = self.start + k
             self.st.x[i] = self.st.x[i] + self.dx[k]
+            self.push[k] += self.dx[k]
+
+    @ti.func
+    def settle_f(self, inv_dt: ti.f32):
+        """Inelastic self-contact: take back the separating velocity this substep's pushes made."""
+        for k in range(self.count):
+            q = self.push[k]
+            lq = q.norm()
+            if lq > 0.0:
+                i = self.start + k
+                d = q / lq
+                vn = self.st.v[i].dot(d)
+                if vn > 0.0:
+                    self.st.v[i] -= ti.min(vn, lq * inv_dt) * d
+                self.push[k] = ti.math.vec3(0.0)
 
     @ti.kernel
     def _measure(self):

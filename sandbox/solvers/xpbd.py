@@ -19,7 +19,8 @@ Per substep (each pass O(n) in particles or constraints):
 7b. optionally (``cloth_joint``), one Newton step on all rows and columns
    of each cloth together, by preconditioned CG (``cloth_joint.py``) --
    O(n) per CG iteration
-8. velocities from positions -- O(n)
+8. velocities from positions; contacts inelastic (no velocity away from a
+   surface, nor from what a self-collision push added) and Coulomb friction -- O(n)
 
 Steps 3-7b repeat ``iterations`` times. Only the passes the scene needs are
 compiled in (``self.stages``, fixed when the solver is built). A whole
@@ -39,7 +40,7 @@ import numpy as np
 import taichi as ti
 
 from sandbox import runtime
-from sandbox.collision.contacts import friction_velocity, plane_push
+from sandbox.collision.contacts import CONTACT_FLAG, friction_velocity, inelastic_velocity, plane_push
 from sandbox.collision.ropecollision import RopeCollision
 from sandbox.collision.selfcollision import ClothSelfCollision
 from sandbox.constraints.distance import xpbd_distance
@@ -135,6 +136,7 @@ class XPBDSolver:
         contact = (self.c_hit, self.c_normal) if self.has_contact_normals else (None, None)
         cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
+        self.has_selfcol = self.selfcol is not None
         self.ropecol = RopeCollision(model, state, self.w, *contact, mode=rope_contacts) \
             if model.s >= 3 else None
         groups = build_chains(model.data)
@@ -252,7 +254,7 @@ class XPBDSolver:
                     if pen > 0.0:
                         self.c_normal[i] = ti.math.vec3(0.0, 1.0, 0.0)
                         self.c_hit[i] = 1.0
-                        self.c_dv[i] = ti.max(self.c_dv[i], 0.5 * (mu_p + gmu) * pen / dt)
+                        self.c_dv[i] = ti.max(self.c_dv[i], 0.5 * (mu_p + gmu) * pen / dt, CONTACT_FLAG)
                         self.c_vel[i] = ti.math.vec3(0.0)
                 if ti.static(self.has_objects):
                     d, n, k = self.objects.query_within(x, r)
@@ -262,7 +264,7 @@ class XPBDSolver:
                         mu = 0.5 * (mu_p + self.objects.friction(k))
                         self.c_normal[i] = n
                         self.c_hit[i] = 1.0
-                        self.c_dv[i] = ti.max(self.c_dv[i], mu * pen / dt)
+                        self.c_dv[i] = ti.max(self.c_dv[i], mu * pen / dt, CONTACT_FLAG)
                         self.c_vel[i] = self.objects.velocity_at(k, x)
                 st.x[i] = x
 
@@ -273,11 +275,14 @@ class XPBDSolver:
             v = (st.x[i] - st.x_prev[i]) * inv_dt
             if ti.static(self.has_ground or self.has_objects):
                 if self.c_dv[i] > 0.0:
+                    v = inelastic_velocity(v, self.c_normal[i], self.c_vel[i])
                     v = friction_velocity(v, self.c_normal[i], self.c_dv[i], self.c_vel[i])
                     self.c_dv[i] = 0.0
             if ti.static(self.has_contact_normals):
                 self.c_hit[i] = 0.0
             st.v[i] = v
+        if ti.static(self.has_selfcol):
+            self.selfcol.settle_f(inv_dt)
 
     @ti.func
     def _stage(self, sid: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
