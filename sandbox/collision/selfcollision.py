@@ -29,7 +29,7 @@ were made. A particle with more candidates than a list holds scans the
 hash cells around its reference instead.
 
 Self-contact is inelastic: the pushes a particle took in a substep are
-summed (``push``), and at the end of the substep (``settle_f``, in the
+summed (``push``), and at the end of the substep (``settle``, in the
 velocity pass) its velocity along their direction loses what they put
 there, up to the push over the step and never past zero. Read back as
 velocity, a push would otherwise throw two layers of a fold apart, and
@@ -367,18 +367,21 @@ class ClothSelfCollision:
             self.push[k] += self.dx[k]
 
     @ti.func
-    def settle_f(self, inv_dt: ti.f32):
-        """Inelastic self-contact: take back the separating velocity this substep's pushes made."""
-        for k in range(self.count):
+    def settle(self, i, v, inv_dt: ti.f32):
+        """Particle i's velocity ``v`` less what this substep's self-collision pushes put into it (inelastic
+        self-contact; called from the velocity pass, which it saves a loop of its own). Clears the pushes."""
+        out = v
+        k = i - self.start
+        if k >= 0:
             q = self.push[k]
             lq = q.norm()
             if lq > 0.0:
-                i = self.start + k
                 d = q / lq
-                vn = self.st.v[i].dot(d)
+                vn = v.dot(d)
                 if vn > 0.0:
-                    self.st.v[i] -= ti.min(vn, lq * inv_dt) * d
+                    out = v - ti.min(vn, lq * inv_dt) * d
                 self.push[k] = ti.math.vec3(0.0)
+        return out
 
     @ti.kernel
     def _measure(self):

@@ -280,9 +280,9 @@ class XPBDSolver:
                     self.c_dv[i] = 0.0
             if ti.static(self.has_contact_normals):
                 self.c_hit[i] = 0.0
+            if ti.static(self.has_selfcol):
+                v = self.selfcol.settle(i, v, inv_dt)
             st.v[i] = v
-        if ti.static(self.has_selfcol):
-            self.selfcol.settle_f(inv_dt)
 
     @ti.func
     def _stage(self, sid: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
