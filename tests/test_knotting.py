@@ -365,6 +365,60 @@ def test_tightening_hold_pull_keeps_pulling_after_it_is_tight():
     assert np.abs(seg / 0.02 - 1).max() < 0.01
 
 
+def test_tightening_pull_with_its_own_force_hangs_at_that_force():
+    """A pull's own ``force`` replaces the Tightening's: the rope hangs at tan(phi) = W / (2F) for that F.
+
+    0.5 N here: 26.1 degrees, against 13.8 at the Tightening's 1 N (the
+    tolerance as in the 1 N test: the end is held once it moves slower than
+    ``settle_speed``, which leaves part of a swing).
+    """
+    w = _world(SLACK_PULL.replace("direction: [1, 0, 0]", "direction: [1, 0, 0], force: 0.5"))
+    for _ in range(900):
+        w.step()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    span = w.rope_positions("R")[-1] - w.rope_positions("R")[0]
+    phi = np.degrees(np.arctan2(-span[1], span[0]))
+    assert phi == pytest.approx(np.degrees(np.arctan(0.05 * 9.81 / 1.0)), abs=2.5)
+
+
+def test_tightening_pull_with_its_own_distance_is_held_there_while_the_others_pull_on():
+    """Both ends pulled apart; the start gives at most its own ``distance`` (3 cm) and is then held, the end straightens the rope."""
+    w = _world(SLACK_PULL.replace(
+        "keep: [{body: R, sites: [start]}]",
+        "keep: []").replace(
+        "pulls: [{body: R, site: end, direction: [1, 0, 0]}]",
+        "pulls: [{body: R, site: end, direction: [1, 0, 0]}, {body: R, site: start, direction: [-1, 0, 0], distance: 0.03}]"))
+    for _ in range(60):
+        w.step()
+        if "Tightening" in w.fsm.state:
+            break
+    start = w.rope_positions("R")[0].copy()
+    n = len(w.rope_positions("R"))
+    held_at = None
+    for _ in range(900):
+        w.step()
+        if held_at is None and w.control.is_driven([0]).all():
+            held_at = w.rope_positions("R")[0].copy()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events
+    assert held_at is not None  # the start stopped giving before the rope was straight
+    moved = float(np.linalg.norm(held_at - start))
+    assert 0.03 <= moved < 0.03 + 1.05 * 0.2 / 60  # held within one frame's travel past its distance
+    x = w.rope_positions("R")
+    np.testing.assert_allclose(x[0], held_at, atol=1e-6)  # and stayed there
+    length = 0.02 * (n - 1)
+    assert 0.97 * length < float(np.linalg.norm(x[-1] - x[0])) <= 1.005 * length  # the end pulled on until straight
+
+
+def test_tightening_pull_force_or_distance_needs_a_tightening_by_force():
+    with pytest.raises(LevelError, match=r"pulls \[0\] set their own force or distance"):
+        load_level_from_string(SLACK_PULL.replace("force: 1.0, ", "").replace(
+            "direction: [1, 0, 0]", "direction: [1, 0, 0], distance: 0.1"))
+
+
 def test_tightening_hold_pull_needs_a_force():
     with pytest.raises(LevelError, match="hold: pull keeps pulling"):
         load_level_from_string(SLACK_PULL.replace("force: 1.0, ", "").replace("distance: 0.5", "distance: 0.5, hold: pull"))

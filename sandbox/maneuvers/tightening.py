@@ -26,6 +26,11 @@ class Pull(Params):
     site: Site = "end"
     direction: Vec3 | Literal["away"] = "away"  # "away": from the knot's centre
     toward: Vec3 | None = None  # m: pull toward this point instead (overrides ``direction``)
+    # With the Tightening's ``force`` (force mode) only:
+    force: Annotated[float, pydantic.Field(gt=0)] | None = None  # N on this end instead of the Tightening's
+    # m: this end is pulled at most this far from where it started, then held
+    # there (a cloth drawn taut over an object gives no more than its slack).
+    distance: Annotated[float, pydantic.Field(gt=0)] | None = None
 
 
 class Kept(Params):
@@ -77,6 +82,11 @@ class TighteningParams(Params):
         if self.hold == "pull" and self.force is None:
             raise ValueError("hold: pull keeps pulling with the Tightening's force: set force (N), "
                              "or use hold: fixed")
+        if self.force is None:
+            bad = [k for k, q in enumerate(self.pulls) if q.force is not None or q.distance is not None]
+            if bad:
+                raise ValueError(f"pulls {bad} set their own force or distance, which only a Tightening by "
+                                 "force has: set the Tightening's force (N), or leave them out")
         return self
 
 
@@ -103,6 +113,9 @@ class Tightening(Maneuver):
     ``stall`` for ``stall_frames`` frames (the force, not ``max_strain`` or
     ``max_overlap``, bounds how hard the rope is pulled); the ends are then
     held where they are (``hold: fixed``) or kept pulled (``hold: pull``).
+    A pull may set its own ``force``, and its own ``distance``: that end is
+    held once it is that far from where it started (a standing part that a
+    cloth draws taut gives its slack, and no more), while the others pull on.
     """
 
     name = "Tightening"
@@ -137,7 +150,8 @@ class Tightening(Maneuver):
             if p.force is None:
                 w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
             else:
-                self._pull(idx, d)
+                self._pull(idx, d, q.force)
+        self.capped: set[int] = set()  # pulls held at their own ``distance`` (force mode)
         self.pushed = self._start_push(x)
         self.push_best, self.push_stalled = np.inf, 0  # closest the pushed part has come to its goal
         self.pulled = 0.0
@@ -229,9 +243,9 @@ class Tightening(Maneuver):
         for idx, _, _ in self.ends:
             self.world.control.drive(idx, x[idx])
 
-    def _pull(self, idx: np.ndarray, d: np.ndarray) -> None:
-        """Pull particles ``idx`` along unit ``d`` with ``force`` in all, at most at ``speed``."""
-        self._hand(idx, d, self.params.force, self.params.speed)
+    def _pull(self, idx: np.ndarray, d: np.ndarray, force: float | None = None) -> None:
+        """Pull particles ``idx`` along unit ``d`` with ``force`` (default: the Tightening's) in all, at most at ``speed``."""
+        self._hand(idx, d, force if force is not None else self.params.force, self.params.speed)
 
     def _hand(self, idx: np.ndarray, d: np.ndarray, force: float, speed: float) -> None:
         """A hand on particles ``idx``: ``force`` N in all along unit ``d``, and a drag that keeps them below ``speed`` m/s."""
@@ -245,9 +259,14 @@ class Tightening(Maneuver):
         speed = max(float(np.linalg.norm(a - b)) * w.fps for a, b in zip(now, self.last_pos))
         self.last_pos = now
         self.pulled = max(float(np.linalg.norm(a - pos)) for a, (_, pos, _) in zip(now, self.ends))
-        for q, a, (idx, _, _) in zip(p.pulls, now, self.ends):
-            if q.toward is not None:  # the pull turns to keep pointing at its point
-                self._pull(idx, _unit(np.asarray(q.toward, float) - a, _UP))
+        for k, (q, a, (idx, pos, _)) in enumerate(zip(p.pulls, now, self.ends)):
+            if k in self.capped:
+                continue
+            if q.distance is not None and float(np.linalg.norm(a - pos)) >= q.distance:
+                w.control.drive(idx, x[idx])  # as far as this end gives: held there from now on
+                self.capped.add(k)
+            elif q.toward is not None:  # the pull turns to keep pointing at its point
+                self._pull(idx, _unit(np.asarray(q.toward, float) - a, _UP), q.force)
         self.still = self.still + 1 if speed < p.settle_speed else 0
         if self.pulled > self.best + p.stall:
             self.best, self.stalled = self.pulled, 0
