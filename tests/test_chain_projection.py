@@ -305,7 +305,8 @@ def test_a_rope_folding_against_a_box_is_not_thrown():
 
 
 def _granny_draft_shifted(dx: float) -> str:
-    """levels/drafts/granny_knot.yaml with its ropes, box, camera and pull targets moved dx (m) sideways."""
+    """The granny draft's first recipe (tails drawn up; tests/data/levels/granny_draft_tails_up.yaml)
+    with its ropes, box, camera and pull targets moved dx (m) sideways."""
     import pathlib
     import sys
 
@@ -317,7 +318,7 @@ def _granny_draft_shifted(dx: float) -> str:
     sys.path.insert(0, str(root / "tools"))
     from sweep_level import shifted_scene
 
-    path = root / "levels" / "drafts" / "granny_knot.yaml"
+    path = root / "tests" / "data" / "levels" / "granny_draft_tails_up.yaml"
     level = yaml.safe_load(path.read_text())
     apply_overrides(level, shifted_scene(path, (dx, 0.0, 0.0), ["C_TOWARD", "T_TOWARD"]))
     return yaml.safe_dump(level, sort_keys=False)

@@ -356,7 +356,7 @@ def test_sweep_rigid_shift_moves_the_whole_scene_and_the_named_fsm_points(tmp_pa
 
     from sandbox.levels import load_level
 
-    path = ROOT / "levels" / "drafts" / "granny_knot.yaml"
+    path = ROOT / "tests" / "data" / "levels" / "granny_draft_tails_up.yaml"
     base = load_level(path)
     shift = (0.05, -0.02, 0.3)
     ov = shifted_scene(path, shift, ["C_TOWARD", "T_TOWARD"])
