@@ -384,12 +384,14 @@ def test_tightening_pull_with_its_own_force_hangs_at_that_force():
 
 
 def test_tightening_pull_with_its_own_distance_is_held_there_while_the_others_pull_on():
-    """Both ends pulled apart; the start gives at most its own ``distance`` (3 cm) and is then held, the end straightens the rope."""
+    """Both ends pulled apart: the start gives at most its own ``distance`` (3 cm) and is then held,
+    while the end pulls on until the rope is straight."""
     w = _world(SLACK_PULL.replace(
         "keep: [{body: R, sites: [start]}]",
         "keep: []").replace(
         "pulls: [{body: R, site: end, direction: [1, 0, 0]}]",
-        "pulls: [{body: R, site: end, direction: [1, 0, 0]}, {body: R, site: start, direction: [-1, 0, 0], distance: 0.03}]"))
+        "pulls: [{body: R, site: end, direction: [1, 0, 0]},\n"
+        "        {body: R, site: start, direction: [-1, 0, 0], distance: 0.03}]"))
     for _ in range(60):
         w.step()
         if "Tightening" in w.fsm.state:

@@ -244,7 +244,8 @@ class Tightening(Maneuver):
             self.world.control.drive(idx, x[idx])
 
     def _pull(self, idx: np.ndarray, d: np.ndarray, force: float | None = None) -> None:
-        """Pull particles ``idx`` along unit ``d`` with ``force`` (default: the Tightening's) in all, at most at ``speed``."""
+        """Pull particles ``idx`` along unit ``d`` with ``force`` N in all (default: the Tightening's),
+        at most at ``speed``."""
         self._hand(idx, d, force if force is not None else self.params.force, self.params.speed)
 
     def _hand(self, idx: np.ndarray, d: np.ndarray, force: float, speed: float) -> None:
