@@ -224,3 +224,23 @@ def test_crossing_keeps_its_tips_within_reach_of_particles_other_hands_hold():
     failed = [e["message"] for e in w.fsm.events if e["type"] == "failed"]
     assert "held back by A's particle 22" in failed[-1], failed
     assert "B's particle 22" in failed[-1], failed
+
+
+def test_straightened_run_keeps_a_rod_to_a_held_particle_next_to_it_at_its_length():
+    """On a straight T the run's end (30) lands next to T's particle 31, which a hand holds: where the
+    hand holds it closer or farther than a rod (by more than half a percent), the rod between them
+    would be compressed or stretched between two held particles, so the run stops one particle earlier;
+    within that it reaches 30. Where the hand holds 31 counts, not where 31 is on its way there."""
+    w = _world(BENT)
+    t = w._rope("T")
+    w.step()
+    m = w.fsm._maneuver
+    assert m.j0 == 25 and w.control.is_driven([t.start + 31])[0]
+    rod = t.rod_length
+    line = np.array([-0.5, 0.5, 0.0]) + np.arange(t.end - t.start)[:, None] * np.array([rod, 0.0, 0.0])
+    for gap, end in ((0.9, 29), (0.994, 29), (1.0, 30), (1.004, 30), (1.006, 29)):
+        xt = line.copy()
+        w.control.drive([t.start + 31], (xt[30] + gap * np.array([rod, 0.0, 0.0]))[None, :])
+        xt[31] = xt[30] + np.array([0.0, 0.0, 0.3])  # the hand's target counts, not where 31 is now
+        run = m._straighten(xt) - t.start
+        assert run.max() == end, (gap, run)

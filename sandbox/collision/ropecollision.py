@@ -70,7 +70,7 @@ class RopeCollision:
             of its shortest rod; 0 off the ropes).
     """
 
-    def __init__(self, model, state, w, hit=None, normal=None, mode: str = "average") -> None:
+    def __init__(self, model, state, w, hit=None, normal=None, mode: str = "average", taut=None) -> None:
         if mode not in ("average", "balanced", "split"):
             raise ValueError(f"rope contact mode {mode!r}: use average, balanced or split")
         self.model = model
@@ -80,6 +80,11 @@ class RopeCollision:
         self.counted = mode != "average"  # a counting gather first; particles add what they gather
         self.st = state
         self.w = w
+        # Optional (n,) f32 and (n,) vec3 fields: how much of each particle's
+        # inverse mass is taken away along a direction (a held stretch of
+        # rope drawn taut, see rope_chain.ChainProjection.taut_f).
+        self.has_taut = taut is not None
+        self.taut, self.taut_n = taut if taut is not None else (None, None)
         # Optional (n,) contact flag and normal fields: a pushed particle records
         # its push direction there for the chain solve (see rope_chain).
         self.record = hit is not None
@@ -142,6 +147,22 @@ class RopeCollision:
         return ok
 
     @ti.func
+    def _wn(self, i, n):
+        """n^T W_i n, W_i = w_i (I - taut_i m m^T) with m = taut_n_i."""
+        r = self.w[i]
+        if ti.static(self.has_taut):
+            r = self.w[i] * (1.0 - self.taut[i] * n.dot(self.taut_n[i]) ** 2)
+        return r
+
+    @ti.func
+    def _wapply(self, i, v):
+        """W_i v."""
+        r = self.w[i] * v
+        if ti.static(self.has_taut):
+            r = self.w[i] * (v - self.taut[i] * v.dot(self.taut_n[i]) * self.taut_n[i])
+        return r
+
+    @ti.func
     def _gather(self, measure: ti.template(), count: ti.template()):
         """Per segment: the gap to its nearest neighbour (``measure``), or its
         contacts per end (``count``), or the scaled corrections of its ends."""
@@ -176,11 +197,14 @@ class RopeCollision:
                             nrm = d / dist
                             wa0 = self.w[a0] * (1.0 - u)
                             wa1 = self.w[a1] * u
-                            wsum = wa0 * (1.0 - u) + wa1 * u + self.w[b0] * (1.0 - v) ** 2 + self.w[b1] * v * v
+                            ka0 = self._wn(a0, nrm) * (1.0 - u) * (1.0 - u)
+                            ka1 = self._wn(a1, nrm) * u * u
+                            kb0 = self._wn(b0, nrm) * (1.0 - v) ** 2
+                            kb1 = self._wn(b1, nrm) * v * v
+                            wsum = ka0 + ka1 + kb0 + kb1
                             if ti.static(self.split and not count):
-                                wsum = (wa0 * (1.0 - u) * self.count[a0] + wa1 * u * self.count[a1]
-                                        + self.w[b0] * (1.0 - v) ** 2 * self.count[b0]
-                                        + self.w[b1] * v * v * self.count[b1])
+                                wsum = (ka0 * self.count[a0] + ka1 * self.count[a1]
+                                        + kb0 * self.count[b0] + kb1 * self.count[b1])
                             if ti.static(count) and wsum > 1e-12:
                                 if wa0 > 0.0:
                                     n0 += 1
@@ -205,10 +229,10 @@ class RopeCollision:
                                                ti.max(self.count[b0], self.count[b1]))
                                     corr *= ti.min(1.0, ti.static(RELAX) / k)
                                 if wa0 > 0.0:
-                                    acc0 += wa0 * corr
+                                    acc0 += (1.0 - u) * self._wapply(a0, corr)
                                     n0 += 1
                                 if wa1 > 0.0:
-                                    acc1 += wa1 * corr
+                                    acc1 += u * self._wapply(a1, corr)
                                     n1 += 1
             self.d0[s] = acc0
             self.d1[s] = acc1

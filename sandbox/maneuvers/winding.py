@@ -128,8 +128,10 @@ class Winding(Maneuver):
         ``xt`` is updated in place to the straightened layout (G is traced on
         it). The run is shortened on a side where its end would land out of
         the rope's reach from the nearest particle held outside it (a hand
-        pinching T, T's standing end): the rods between them would have to
-        stretch by more than 1 %. Returns their global indices.
+        pinching T, T's standing end, where its hand holds it): the rods
+        between them would have to stretch by more than ``REACH_SLACK``; or,
+        next to a held particle, be compressed by as much. Returns their
+        global indices.
         """
         w = self.world
         half = int(round(0.5 * self.params.straighten / self.t.rod_length))
@@ -140,10 +142,15 @@ class Winding(Maneuver):
         d = xs[hi] - xs[lo]
         d /= max(float(np.linalg.norm(d)), 1e-12)
         rod = self.t.rod_length
-        held = np.flatnonzero(w.control.is_driven(self.t.start + np.arange(len(xt))))
+        t0 = self.t.start
+        held = np.flatnonzero(w.control.is_driven(t0 + np.arange(len(xt))))
 
         def reachable(i: int, h: int) -> bool:
-            return float(np.linalg.norm(xs[self.j0] + (i - self.j0) * rod * d - xs[h])) <= 1.01 * abs(i - h) * rod
+            # Where the hand holds h (it may still be on its way there). One rod
+            # from it, the rod between them must keep its length both ways: it
+            # cannot take up a shortfall by bending.
+            gap = float(np.linalg.norm(xs[self.j0] + (i - self.j0) * rod * d - w.control.target([t0 + h])[0]))
+            return gap <= REACH_SLACK * abs(i - h) * rod and (abs(i - h) > 1 or gap >= (2.0 - REACH_SLACK) * rod)
 
         below, above = held[held < lo], held[held > hi]
         while lo < self.j0 and len(below) and not reachable(lo, int(below.max())):

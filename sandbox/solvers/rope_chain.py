@@ -45,6 +45,11 @@ BLOCKED = 1e-3
 # A chain step that moves a particle by more than this many rods and leaves
 # a rod further off than before is scaled back (ChainProjection._step_scale).
 THROW = 0.5
+# A particle of a rope between two held particles gives way outwards to a
+# contact less once the stretch through it is drawn this close to taut (its
+# distances to the two holds add up to this fraction of the rods between
+# them), not at all when taut (ChainProjection.taut_f).
+TAUT = 0.999
 
 
 def cloth_rows_and_columns(data) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -348,6 +353,59 @@ class ChainProjection:
         if not done:
             s = 0.0
         return s
+
+    @ti.func
+    def taut_f(self, taut: ti.template(), taut_n: ti.template()):
+        """Where a held stretch of rope is drawn taut: how much (``taut``) and which way out (``taut_n``).
+
+        A particle k of a stretch of rope between two held particles h1, h2
+        of reach L (the rods between them) can only be where |x_k - x_h1| +
+        |x_k - x_h2| <= L: a spheroid with the holds as foci. On its
+        boundary the stretch is straight on both sides of k, and a contact
+        that pushes k out through it stretches the rods, which the chain
+        step cannot undo (collinear rods held at both ends: a singular
+        step, scaled back): the rope is left stretched, then snaps back.
+        The rope contacts therefore take away that much of k's inverse mass
+        along the boundary's outward normal n (``RopeCollision``): taut =
+        (e - TAUT) / (1 - TAUT) clamped to [0, 1], e = (|x_k - x_h1| +
+        |x_k - x_h2|) / L, 0 inside e <= TAUT; a taut stretch still slides
+        and swings along the boundary, and the other rope gives way. O(k)
+        per chain.
+        """
+        for i in taut:
+            taut[i] = 0.0
+        if ti.static(self.has_ropes):
+            x = ti.static(self.st.x)
+            g0, g1 = ti.static(self.group_ranges[0])
+            for c in range(g0, g1):
+                lo = self.lo[c]
+                hi = self.hi[c]
+                if self.link_a[lo] < ti.static(self.cloth_start):
+                    seg = -1
+                    reach = 0.0
+                    for j in range(lo, hi):
+                        a = self.link_a[j]
+                        b = self.link_b[j]
+                        if self.w[a] == 0.0:
+                            seg = j
+                            reach = 0.0
+                        reach += self.rest[j]
+                        if seg >= 0 and self.w[b] == 0.0 and j > seg:
+                            h1 = x[self.link_a[seg]]
+                            h2 = x[b]
+                            for k in range(seg + 1, j + 1):
+                                i = self.link_a[k]
+                                d1 = x[i] - h1
+                                d2 = x[i] - h2
+                                l1 = d1.norm()
+                                l2 = d2.norm()
+                                e = (l1 + l2) / reach
+                                if e > ti.static(TAUT) and l1 > 1e-12 and l2 > 1e-12:
+                                    n = d1 / l1 + d2 / l2
+                                    ln = n.norm()
+                                    if ln > 1e-6:
+                                        taut[i] = ti.min(1.0, (e - ti.static(TAUT)) / (1.0 - ti.static(TAUT)))
+                                        taut_n[i] = n / ln
 
     @ti.func
     def _peel(self):

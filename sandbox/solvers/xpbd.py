@@ -11,7 +11,9 @@ Per substep (each pass O(n) in particles or constraints):
    Newton step per chain (``rope_chain.py``), repeated ``chain_sweeps`` times
    with the contacts in between (repeats only for chains still off) -- O(n)
 5. rope capsule-capsule collisions (Eq. 5), Jacobi gather -- O(s k), k
-   candidates per segment (bounded by the hash cell occupancy)
+   candidates per segment (bounded by the hash cell occupancy); a stretch
+   of rope held at both ends and drawn taut is not pushed out past taut
+   (``ChainProjection.taut_f``) -- O(n)
 6. cloth self-collision, Jacobi gather over per-particle candidate lists
    (Verlet lists: patched or rebuilt from a spatial hash only when some
    particle has moved half their skin), rest neighbours excluded -- O(n k)
@@ -137,10 +139,15 @@ class XPBDSolver:
         cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
         self.has_selfcol = self.selfcol is not None
-        self.ropecol = RopeCollision(model, state, self.w, *contact, mode=rope_contacts) \
-            if model.s >= 3 else None
         groups = build_chains(model.data)
         self.inext = ChainProjection(model, state, self.w, groups, *contact) if groups else None
+        # Rope contacts do not push a held stretch of rope out past taut
+        # (ChainProjection.taut_f), refreshed before each contact pass.
+        self.has_taut = model.s >= 3 and self.inext is not None and self.inext.has_ropes
+        taut = (ti.field(ti.f32, shape=model.n), ti.Vector.field(3, ti.f32, shape=model.n)) \
+            if self.has_taut else None
+        self.ropecol = RopeCollision(model, state, self.w, *contact, mode=rope_contacts, taut=taut) \
+            if model.s >= 3 else None
         cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
         self.joint = JointClothProjection(model, state, self.w, cloth_groups, *contact, peeled=self.inext.peeled,
                                           iterations=int(cloth_joint)) if cloth_groups else None
@@ -295,6 +302,8 @@ class XPBDSolver:
         if ti.static(sid == CONSTRAINTS):
             self._constraints(1.0 / (dt * dt))
         if ti.static(sid == ROPE_COLLIDE):
+            if ti.static(self.has_taut):
+                self.inext.taut_f(self.ropecol.taut, self.ropecol.taut_n)
             self.ropecol.solve_f()
         if ti.static(sid == SELF_COLLIDE):
             self.selfcol.solve_f()

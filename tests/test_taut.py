@@ -1,0 +1,120 @@
+"""A held stretch of rope drawn taut is not pushed out past taut by rope contacts (rope_chain.taut_f)."""
+
+import numpy as np
+import taichi as ti
+
+import sandbox.maneuvers  # noqa: F401
+from sandbox.solvers.rope_chain import TAUT
+from tests.levelkit import solver_masses, world_from_text as _world
+
+# V: pinned at both ends, 6.3 mm of sag at its middle particle, both halves straight: taut.
+# S: pinned at both ends 0.36 m apart with 0.4 m of rope: slack.
+# F: pinned at its start only.
+ROPES = """
+version: 1
+name: taut
+scene:
+  gravity: [0, -9.81, 0]
+  ropes:
+    - {name: V, points: [[-0.2, 0.5, 0], [0.0, 0.4937, 0], [0.2, 0.5, 0]], rod_length: 0.01, radius: 0.006,
+       pins: [start, end]}
+    - {name: S, points: [[-0.18, 0.8, 0], [0.0, 0.7128, 0], [0.18, 0.8, 0]], rod_length: 0.01, radius: 0.006,
+       pins: [start, end]}
+    - {name: F, points: [[0.5, 0.8, 0], [0.5, 0.6, 0]], rod_length: 0.01, radius: 0.006, pins: [start]}
+sim: {fps: 60, substeps: 20, iterations: 4}
+fsm:
+  - {run: Wait, with: {seconds: 1.0}}
+"""
+
+
+def _taut_fields(w):
+    solver = w.solver
+
+    @ti.kernel
+    def fill():
+        solver.inext.taut_f(solver.ropecol.taut, solver.ropecol.taut_n)
+
+    solver_masses(w)
+    fill()
+    return solver.ropecol.taut.to_numpy(), solver.ropecol.taut_n.to_numpy()
+
+
+def _reference(x, x0, w, ropes):
+    """NumPy: e = (|x - h1| + |x - h2|) / L between consecutive held particles, taut and outward normal."""
+    taut = np.zeros(len(x))
+    normal = np.zeros((len(x), 3))
+    for r in ropes:
+        held = [i for i in range(r.start, r.end) if w[i] == 0.0]
+        for h1, h2 in zip(held, held[1:]):
+            reach = np.linalg.norm(np.diff(x0[h1:h2 + 1], axis=0), axis=1).sum()
+            for k in range(h1 + 1, h2):
+                d1, d2 = x[k] - x[h1], x[k] - x[h2]
+                e = (np.linalg.norm(d1) + np.linalg.norm(d2)) / reach
+                if e > TAUT:
+                    n = d1 / np.linalg.norm(d1) + d2 / np.linalg.norm(d2)
+                    taut[k] = min(1.0, (e - TAUT) / (1.0 - TAUT))
+                    normal[k] = n / np.linalg.norm(n)
+    return taut, normal
+
+
+def test_taut_stretch_matches_the_closed_form_and_the_numpy_reference():
+    w = _world(ROPES)
+    for _ in range(3):
+        w.step()
+    taut, normal = _taut_fields(w)
+    x = w.positions().astype(np.float64)
+    inv = solver_masses(w)
+    ref_taut, ref_normal = _reference(x, w.data.x0.astype(np.float64), inv, w.data.ropes)
+    v, s, f = (w._rope(n) for n in "VSF")
+    # Closed form: the V's middle particle lies on the spheroid (both halves straight): fully taut,
+    # its outward normal the bisector of the two halves, straight down (float32 lengths: e is 1 to
+    # about 1e-4, a tenth of 1 - TAUT); the slack and the free rope: none.
+    mid = v.start + 20
+    assert taut[mid] > 0.8
+    np.testing.assert_allclose(normal[mid], [0.0, -1.0, 0.0], atol=1e-3)
+    assert (taut[v.start + 1:v.end - 1] > 0.5).all()
+    assert not taut[s.start:s.end].any() and not taut[f.start:f.end].any()
+    assert taut[v.start] == 0.0 and taut[v.end - 1] == 0.0  # the holds themselves
+    # Kernel against NumPy (float32 positions; e within about 1e-6 of 1 near the boundary).
+    np.testing.assert_allclose(taut, ref_taut, atol=2e-2)
+    on = ref_taut > 0.1
+    np.testing.assert_allclose(normal[on], ref_normal[on], atol=1e-3)
+
+
+# C pinned above the taut V and drawn down across it to the far side: it wraps over the V.
+DRAWN = """
+version: 1
+name: drawn
+scene:
+  gravity: [0, -9.81, 0]
+  ropes:
+    - {name: T, points: [[-0.2, 0.5, 0], [0.0, 0.4937, 0], [0.2, 0.5, 0]], rod_length: 0.01, radius: 0.006,
+       pins: [start, end]}
+    - {name: C, points: [[0.0, 0.6, 0.013], [0.0, 0.3, 0.013]], rod_length: 0.01, radius: 0.006, pins: [start]}
+sim: {fps: 60, substeps: 20, iterations: 4}
+fsm:
+  - {run: MoveTo, with: {body: C, sites: [end], to: [0.0, 0.36, -0.08], speed: 0.3}}
+  - {run: MoveTo, with: {body: C, sites: [end], to: [0.0, 0.33, -0.08], speed: 0.1}}
+  - {run: Wait, with: {seconds: 0.5}}
+"""
+
+
+def test_a_rope_drawn_across_a_taut_held_rope_wraps_it_and_the_taut_rope_swings_but_does_not_stretch():
+    w = _world(DRAWN)
+    t, c = w._rope("T"), w._rope("C")
+    worst_t = worst_c = swing = 0.0
+    gap = np.inf
+    for _ in range(90):
+        w.step()
+        x = w.positions().astype(np.float64)
+        xt, xc = x[t.start:t.end], x[c.start:c.end]
+        worst_t = max(worst_t, np.abs(np.linalg.norm(np.diff(xt, axis=0), axis=1) / 0.01 - 1).max())
+        worst_c = max(worst_c, np.abs(np.linalg.norm(np.diff(xc, axis=0), axis=1) / 0.01 - 1).max())
+        swing = max(swing, np.abs(xt[:, 2]).max())
+        gap = min(gap, float(w.solver.ropecol.measure().min()))
+    assert w.fsm.state == "success"
+    assert worst_t < 1e-3 and worst_c < 1e-3  # the V starts 0.05 % short of straight; nothing stretches
+    assert gap > -0.1 * 0.006  # no overlap past a tenth of a radius
+    assert swing > 1e-3  # still free to swing about its holds: pushed sideways by millimetres
+    xc = w.rope_positions("C")
+    assert xc[np.abs(xc[:, 1] - 0.5).argmin(), 2] > 0.0  # C lies over T on its own side
