@@ -398,6 +398,25 @@ class World:
                 row["maneuver"] = man.metrics()
         return row
 
+    def clear_of_solids(self, points, clearance: float) -> np.ndarray:
+        """Points (n, 3) m moved out of the objects and above the ground to ``clearance`` m of their surfaces.
+
+        Where a hand carries a held particle of a rope of radius r, it must
+        keep the particle r clear of every surface: a driven particle takes
+        no contacts, so a path that cuts an object's edge drags the rope
+        through it. A point closer than ``clearance`` to an object moves out
+        along that object's surface normal (one step: exact for a point near
+        a face or an edge); points already clear are returned unchanged.
+        """
+        p = np.array(points, dtype=np.float64).reshape(-1, 3)
+        if self.objects is not None and len(self.objects):
+            d, n, _ = self.objects.query_numpy(p)
+            near = d < clearance
+            p[near] += (clearance - d[near].astype(np.float64))[:, None] * n[near].astype(np.float64)
+        if self.ground_height is not None:
+            p[:, 1] = np.maximum(p[:, 1], self.ground_height + clearance)
+        return p
+
     def shadow_distance(self, name: str, points) -> np.ndarray:
         """Signed distance (m, > 0 outside) in the ground plane from points to an object's convex shadow.
 

@@ -244,3 +244,54 @@ def test_straightened_run_keeps_a_rod_to_a_held_particle_next_to_it_at_its_lengt
         xt[31] = xt[30] + np.array([0.0, 0.0, 0.3])  # the hand's target counts, not where 31 is now
         run = m._straighten(xt) - t.start
         assert run.max() == end, (gap, run)
+
+
+def _winding_world(extra: str = ""):
+    text = (ROOT / "levels" / "rope_wind.yaml").read_text()
+    text = text.replace("handedness: 1}, timeout: 150}", f"handedness: 1{extra}}}, timeout: 300}}")
+    w = _world(text)
+    while not (w.fsm.state == "1:Winding" and w.fsm._maneuver.k >= 2):
+        w.step()
+    return w, w.fsm._maneuver
+
+
+def test_winding_retrace_keeps_the_count_of_targets_on_g_within_one():
+    """G traced again: a count of samples one off the count before is brought back to it (the last
+    sample dropped, or one more rod along G's last tangent); two off, the new count stands."""
+    from sandbox.geometry.tube import sample_targets
+
+    w, m = _winding_world()
+    xt = w.rope_positions("T").astype(np.float64)
+    natural = m._targets(xt)
+    n = m.n_turns
+    assert n == len(sample_targets(m.geodesic, m.c.rod_length)) == len(natural)
+    fewer = m._targets(xt, keep=n - 1)
+    assert m.n_turns == n - 1
+    np.testing.assert_allclose(fewer, natural[: n - 1])
+    more = m._targets(xt, keep=n + 1)
+    assert m.n_turns == n + 1
+    np.testing.assert_allclose(more[:n], natural)
+    np.testing.assert_allclose(np.linalg.norm(more[n] - more[n - 1]), m.c.rod_length)
+    np.testing.assert_allclose((more[n] - more[n - 1]) / m.c.rod_length,
+                               (natural[-1] - natural[-2]) / np.linalg.norm(natural[-1] - natural[-2]), atol=1e-9)
+    m._targets(xt, keep=n + 2)
+    assert m.n_turns == n
+
+
+def test_winding_exit_keeps_its_line_once_the_turns_are_laid_while_t_moves():
+    """T moved by 2 cm: G and every target are traced again while turns are being laid; once they are
+    (the particle to drive is on the exit), the exit line stays where it was."""
+    w, m = _winding_world(", exit: 0.05")
+    target_rope = m.params.target
+    read = w.rope_positions
+    w.rope_positions = lambda name: read(name) + (0.02 if name == target_rope else 0.0)
+    before = m.targets.copy()
+    m.update()
+    assert np.linalg.norm(m.targets - before, axis=1).max() > 0.01  # re-traced on the moved T
+    w.rope_positions = read
+    m.update()  # back where it was
+    m.k = m.n_turns  # the turns laid: the next particle goes to the first exit target
+    before = m.targets.copy()
+    w.rope_positions = lambda name: read(name) + (0.02 if name == target_rope else 0.0)
+    m.update()
+    np.testing.assert_array_equal(m.targets, before)

@@ -177,6 +177,51 @@ def test_crossing_two_ropes_makes_a_crossing_of_the_asked_sign(sign):
     assert gap.min() > -0.1 * 0.008
 
 
+def _with_box(text: str, centre, size: float) -> str:
+    box = (f"  ground: {{height: 0.0}}\n  objects:\n    - {{name: box, shape: box, params: {{size: [{size}, {size}, {size}]}}, "
+           f"position: [{centre[0]:.6f}, {centre[1]:.6f}, {centre[2]:.6f}]}}\n  ropes:")
+    return text.replace("  ropes:", box, 1)
+
+
+def test_clear_of_solids_moves_points_a_clearance_out_of_objects_and_above_the_ground():
+    """Closed forms on a 0.2 m box standing at (0, 0.5, 0), its top at 0.7: out through the nearest
+    face, round an edge, above the ground; points already clear stay where they are."""
+    w = _world(_with_box(TWO_ROPES.replace("SIGN", "1"), (0.0, 0.5, 0.0), 0.2))
+    c = 0.01
+    pts = np.array([[0.0, 0.69, 0.0],       # inside, 1 cm under the top face
+                    [0.105, 0.705, 0.0],    # outside, 7 mm from the top edge at (0.1, 0.7)
+                    [0.0, 0.75, 0.0],       # clear
+                    [0.5, 0.004, 0.0]])     # 4 mm above the ground
+    out = w.clear_of_solids(pts, c)
+    np.testing.assert_allclose(out[0], [0.0, 0.71, 0.0], atol=1e-5)
+    edge = np.array([0.1, 0.7, 0.0])
+    np.testing.assert_allclose(np.linalg.norm(out[1] - edge), c, atol=1e-5)
+    np.testing.assert_allclose((out[1] - edge) / c, (pts[1] - edge) / np.linalg.norm(pts[1] - edge), atol=1e-4)
+    np.testing.assert_array_equal(out[2], pts[2])
+    np.testing.assert_allclose(out[3], [0.5, c, 0.0], atol=1e-7)
+
+
+def test_crossing_hands_go_round_an_object_in_their_way():
+    """A box right across a tip's straight way: the hand carries the tip round it, a radius clear.
+    (A driven particle takes no contacts: a hand through the box would drag the rope through it.)"""
+    plain = _world(TWO_ROPES.replace("SIGN", "1"))
+    while not hasattr(plain.fsm._maneuver, "moves"):
+        plain.step()
+    idx, _, ways = plain.fsm._maneuver.moves[0]
+    centre = 0.5 * (ways[1] + ways[2])  # the middle of its way across
+    w = _world(_with_box(TWO_ROPES.replace("SIGN", "1"), centre - [0.0, 0.02, 0.0], 0.04))  # a box stands on its base
+    r = 0.008
+    nearest = np.inf
+    for _ in range(300):
+        w.step()
+        d, _, _ = w.objects.query_numpy(w.positions()[idx])
+        nearest = min(nearest, float(d.min()))
+        if w.fsm.finished:
+            break
+    assert w.fsm.finished
+    assert nearest >= r - 1e-4, nearest
+
+
 JOINED = """
 version: 1
 name: cross_joined

@@ -32,17 +32,19 @@ def _taut_fields(w):
 
     @ti.kernel
     def fill():
-        solver.inext.taut_f(solver.ropecol.taut, solver.ropecol.taut_n)
+        solver.inext.taut_f(solver.ropecol.taut, solver.ropecol.taut_n, solver.ropecol.room)
 
     solver_masses(w)
     fill()
-    return solver.ropecol.taut.to_numpy(), solver.ropecol.taut_n.to_numpy()
+    return solver.ropecol.taut.to_numpy(), solver.ropecol.taut_n.to_numpy(), solver.ropecol.room.to_numpy()
 
 
 def _reference(x, x0, w, ropes):
-    """NumPy: e = (|x - h1| + |x - h2|) / L between consecutive held particles, taut and outward normal."""
+    """NumPy: e = (|x - h1| + |x - h2|) / L between consecutive held particles: taut, outward normal
+    and room (how far along the normal the focal sum reaches L, to first order)."""
     taut = np.zeros(len(x))
     normal = np.zeros((len(x), 3))
+    room = np.full(len(x), 1e30)
     for r in ropes:
         held = [i for i in range(r.start, r.end) if w[i] == 0.0]
         for h1, h2 in zip(held, held[1:]):
@@ -50,21 +52,22 @@ def _reference(x, x0, w, ropes):
             for k in range(h1 + 1, h2):
                 d1, d2 = x[k] - x[h1], x[k] - x[h2]
                 e = (np.linalg.norm(d1) + np.linalg.norm(d2)) / reach
+                n = d1 / np.linalg.norm(d1) + d2 / np.linalg.norm(d2)
+                room[k] = max(reach * (1.0 - e), 0.0) / np.linalg.norm(n)
+                normal[k] = n / np.linalg.norm(n)
                 if e > TAUT:
-                    n = d1 / np.linalg.norm(d1) + d2 / np.linalg.norm(d2)
                     taut[k] = min(1.0, (e - TAUT) / (1.0 - TAUT))
-                    normal[k] = n / np.linalg.norm(n)
-    return taut, normal
+    return taut, normal, room
 
 
 def test_taut_stretch_matches_the_closed_form_and_the_numpy_reference():
     w = _world(ROPES)
     for _ in range(3):
         w.step()
-    taut, normal = _taut_fields(w)
+    taut, normal, room = _taut_fields(w)
     x = w.positions().astype(np.float64)
     inv = solver_masses(w)
-    ref_taut, ref_normal = _reference(x, w.data.x0.astype(np.float64), inv, w.data.ropes)
+    ref_taut, ref_normal, ref_room = _reference(x, w.data.x0.astype(np.float64), inv, w.data.ropes)
     v, s, f = (w._rope(n) for n in "VSF")
     # Closed form: the V's middle particle lies on the spheroid (both halves straight): fully taut,
     # its outward normal the bisector of the two halves, straight down (float32 lengths: e is 1 to
@@ -75,10 +78,19 @@ def test_taut_stretch_matches_the_closed_form_and_the_numpy_reference():
     assert (taut[v.start + 1:v.end - 1] > 0.5).all()
     assert not taut[s.start:s.end].any() and not taut[f.start:f.end].any()
     assert taut[v.start] == 0.0 and taut[v.end - 1] == 0.0  # the holds themselves
+    # Next to no room out at the V's apex (e is 1 to about 1e-4: a fraction of a millimetre along a
+    # near-straight V, less than a tenth of its 6.3 mm sag); the slack rope's middle can go out by
+    # most of its sag; off held stretches (the free rope, the holds) there is no bound.
+    assert room[mid] < 1e-3
+    assert room[s.start + 20] > 0.005
+    assert (room[f.start:f.end] == 1e30).all() and room[v.start] == 1e30 and room[v.end - 1] == 1e30
     # Kernel against NumPy (float32 positions; e within about 1e-6 of 1 near the boundary).
     np.testing.assert_allclose(taut, ref_taut, atol=2e-2)
     on = ref_taut > 0.1
     np.testing.assert_allclose(normal[on], ref_normal[on], atol=1e-3)
+    inside = ref_room < 1.0
+    np.testing.assert_array_equal(room >= 1e29, ~inside)
+    np.testing.assert_allclose(room[inside], ref_room[inside], atol=2e-4)
 
 
 # C pinned above the taut V and drawn down across it to the far side: it wraps over the V.
@@ -118,3 +130,38 @@ def test_a_rope_drawn_across_a_taut_held_rope_wraps_it_and_the_taut_rope_swings_
     assert swing > 1e-3  # still free to swing about its holds: pushed sideways by millimetres
     xc = w.rope_positions("C")
     assert xc[np.abs(xc[:, 1] - 0.5).argmin(), 2] > 0.0  # C lies over T on its own side
+
+
+# V taut as above; P a single rod pinned at both ends, 5 mm into the V's apex from the side of its holds.
+PRESSED = """
+version: 1
+name: pressed
+scene:
+  gravity: [0, -9.81, 0]
+  ropes:
+    - {name: V, points: [[-0.2, 0.5, 0], [0.0, 0.4937, 0], [0.2, 0.5, 0]], rod_length: 0.01, radius: 0.006,
+       pins: [start, end]}
+    - {name: P, points: [[-0.005, 0.5007, 0], [0.005, 0.5007, 0]], rod_length: 0.01, radius: 0.006,
+       pins: [start, end]}
+sim: {fps: 60, substeps: 20, iterations: 4}
+fsm:
+  - {run: Wait, with: {seconds: 0.1}}
+"""
+
+
+def test_a_contact_pass_moves_a_taut_stretch_no_further_out_than_its_room():
+    """An immovable rod pressed 5 mm into a taut V: the whole push falls on the V, whose apex has a
+    fraction of a millimetre of room; one contact pass moves no V particle out by more than its room
+    (without the cap the apex would take millimetres), and the others no further than a rod."""
+    w = _world(PRESSED)
+    v = w._rope("V")
+    taut, normal, room = _taut_fields(w)
+    x0 = w.positions().astype(np.float64)
+    w.solver.ropecol.solve()
+    dx = w.positions().astype(np.float64) - x0
+    out = (dx * normal).sum(axis=1)[v.start:v.end]
+    inner = slice(1, v.end - v.start - 1)
+    assert np.abs(dx[v.start:v.end]).max() > 1e-4  # the pass did push the V
+    assert (out[inner] <= room[v.start:v.end][inner] + 1e-6).all(), (out, room[v.start:v.end])
+    mid = 20
+    assert out[mid] > 0.5 * room[v.start + mid]  # pushed out up to its room, not held in place

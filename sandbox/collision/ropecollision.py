@@ -80,11 +80,12 @@ class RopeCollision:
         self.counted = mode != "average"  # a counting gather first; particles add what they gather
         self.st = state
         self.w = w
-        # Optional (n,) f32 and (n,) vec3 fields: how much of each particle's
-        # inverse mass is taken away along a direction (a held stretch of
-        # rope drawn taut, see rope_chain.ChainProjection.taut_f).
+        # Optional (n,) f32, (n,) vec3 and (n,) f32 fields: how much of each
+        # particle's inverse mass is taken away along a direction, and how far
+        # along it a pass may move the particle (a held stretch of rope drawn
+        # taut, see rope_chain.ChainProjection.taut_f).
         self.has_taut = taut is not None
-        self.taut, self.taut_n = taut if taut is not None else (None, None)
+        self.taut, self.taut_n, self.room = taut if taut is not None else (None, None, None)
         # Optional (n,) contact flag and normal fields: a pushed particle records
         # its push direction there for the chain solve (see rope_chain).
         self.record = hit is not None
@@ -268,6 +269,10 @@ class RopeCollision:
                 dx = acc
                 if ti.static(not self.counted):
                     dx = acc / ti.cast(cnt, ti.f32)
+                if ti.static(self.has_taut):
+                    out = dx.dot(self.taut_n[i])
+                    if out > self.room[i]:  # not out past taut (rope_chain.taut_f)
+                        dx -= (out - self.room[i]) * self.taut_n[i]
                 move = dx.norm()
                 if move > self.max_move[i]:  # a near-held lever's throw (see THROW)
                     dx *= self.max_move[i] / move

@@ -419,6 +419,9 @@ class Crossing(Maneuver):
                     pos = pos + d * (step / dist)
                     self.travelled += step
                     step = 0.0
+            # The hand goes round the objects (and stays above the ground), not
+            # through them: it keeps its particles a radius clear.
+            pos = w.clear_of_solids(pos, float(w.model.data.radius[np.atleast_1d(idx)].max()))[0]
             self.moves[k] = (idx, pos, ways)
             w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
             arrived &= not ways

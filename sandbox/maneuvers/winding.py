@@ -8,7 +8,10 @@ the wound part on the tube, and the last particle stays held when the
 maneuver is done. T may move: when any of its particles has moved
 by more than a tenth of the tube radius since G was traced, the tube and G
 are traced again (at most every ``refresh`` frames) from the crossing point
-carried along with T's nearest particle.
+carried along with T's nearest particle. Once the turns are laid, the exit
+(``exit``) keeps the line it had then: it starts at the last turn's end and
+runs along G's last tangent, a direction that a millimetre's change of that
+end swings by tens of degrees while T moves.
 """
 
 from __future__ import annotations
@@ -180,7 +183,17 @@ class Winding(Maneuver):
 
         return strand_approach(w.positions().astype(np.float64), self.c, self.t)[1]
 
-    def _targets(self, xt: np.ndarray) -> np.ndarray:
+    def _targets(self, xt: np.ndarray, keep: int | None = None) -> np.ndarray:
+        """Targets every rod along G traced on T's tube (``xt``), then the exit.
+
+        ``keep``: the number of targets on G traced before. G's samples are
+        one per rod up to where it reaches w0, so as T moves their count
+        flickers by one where G's length crosses a whole number of rods, and
+        with it where the exit starts (a target k along it jumps by
+        centimetres, and the particle driven there chases it back and
+        forth). A count one off ``keep`` is brought back to it: the last
+        sample dropped, or one more rod along G's last tangent.
+        """
         from sandbox.geometry.tube import Tube, sample_targets, smooth_axis, trace_geodesic
 
         p = self.params
@@ -193,6 +206,11 @@ class Winding(Maneuver):
         self.geodesic = trace_geodesic(tube, self.cross, theta=np.radians(p.theta), w0=p.w0,
                                        handedness=p.handedness, along=p.along)
         pts = sample_targets(self.geodesic, self.c.rod_length)
+        if keep is not None and len(pts) == keep + 1:
+            pts = pts[:keep]
+        elif keep is not None and len(pts) == keep - 1 and len(pts) >= 2:
+            t = pts[-1] - pts[-2]
+            pts = np.vstack([pts, pts[-1] + t * (self.c.rod_length / max(float(np.linalg.norm(t)), 1e-12))])
         self.n_turns = len(pts)  # targets on G itself; an exit follows
         m = int(round(p.exit / self.c.rod_length))
         if m > 0 and len(pts) >= 2:
@@ -215,10 +233,10 @@ class Winding(Maneuver):
             return Status.DONE
         xt = w.rope_positions(p.target).astype(np.float64)
         moved = float(np.linalg.norm(xt - self.xt_traced, axis=1).max())
-        if self.ticks % p.refresh == 0 and moved > 0.1 * self.R:
+        if self.ticks % p.refresh == 0 and moved > 0.1 * self.R and self.k < self.n_turns:
             # T has moved: re-trace G on its current tube from the crossing carried along.
             self.cross = xt[self.j0] + self.offset
-            self.targets = self._targets(xt)[: self.n_max]
+            self.targets = self._targets(xt, keep=self.n_turns)[: self.n_max]
             self.xt_traced = xt.copy()
             self.n = len(self.targets)  # the count follows G: it may grow or shrink by one or two
         idx = self._particle(self.k)

@@ -355,8 +355,9 @@ class ChainProjection:
         return s
 
     @ti.func
-    def taut_f(self, taut: ti.template(), taut_n: ti.template()):
-        """Where a held stretch of rope is drawn taut: how much (``taut``) and which way out (``taut_n``).
+    def taut_f(self, taut: ti.template(), taut_n: ti.template(), room: ti.template()):
+        """Where a held stretch of rope is drawn taut: how much (``taut``), which way out (``taut_n``)
+        and how far out it may still go (``room``).
 
         A particle k of a stretch of rope between two held particles h1, h2
         of reach L (the rods between them) can only be where |x_k - x_h1| +
@@ -369,11 +370,16 @@ class ChainProjection:
         along the boundary's outward normal n (``RopeCollision``): taut =
         (e - TAUT) / (1 - TAUT) clamped to [0, 1], e = (|x_k - x_h1| +
         |x_k - x_h2|) / L, 0 inside e <= TAUT; a taut stretch still slides
-        and swings along the boundary, and the other rope gives way. O(k)
-        per chain.
+        and swings along the boundary, and the other rope gives way. A
+        single contact pass can still push k from inside the spheroid out
+        past it; ``room`` = (L - |x_k - x_h1| - |x_k - x_h2|) / |g| (g the
+        gradient of the focal sum, |g| n = g) is how far along n that stays
+        inside, to first order, and the contacts move k no further out than
+        that (1e30 off held stretches). O(k) per chain.
         """
         for i in taut:
             taut[i] = 0.0
+            room[i] = 1e30
         if ti.static(self.has_ropes):
             x = ti.static(self.st.x)
             g0, g1 = ti.static(self.group_ranges[0])
@@ -400,12 +406,14 @@ class ChainProjection:
                                 l1 = d1.norm()
                                 l2 = d2.norm()
                                 e = (l1 + l2) / reach
-                                if e > ti.static(TAUT) and l1 > 1e-12 and l2 > 1e-12:
+                                if l1 > 1e-12 and l2 > 1e-12:
                                     n = d1 / l1 + d2 / l2
                                     ln = n.norm()
                                     if ln > 1e-6:
-                                        taut[i] = ti.min(1.0, (e - ti.static(TAUT)) / (1.0 - ti.static(TAUT)))
                                         taut_n[i] = n / ln
+                                        room[i] = ti.max(reach - l1 - l2, 0.0) / ln
+                                        if e > ti.static(TAUT):
+                                            taut[i] = ti.min(1.0, (e - ti.static(TAUT)) / (1.0 - ti.static(TAUT)))
 
     @ti.func
     def _peel(self):

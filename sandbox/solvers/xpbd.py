@@ -144,8 +144,8 @@ class XPBDSolver:
         # Rope contacts do not push a held stretch of rope out past taut
         # (ChainProjection.taut_f), refreshed before each contact pass.
         self.has_taut = model.s >= 3 and self.inext is not None and self.inext.has_ropes
-        taut = (ti.field(ti.f32, shape=model.n), ti.Vector.field(3, ti.f32, shape=model.n)) \
-            if self.has_taut else None
+        taut = (ti.field(ti.f32, shape=model.n), ti.Vector.field(3, ti.f32, shape=model.n),
+                ti.field(ti.f32, shape=model.n)) if self.has_taut else None
         self.ropecol = RopeCollision(model, state, self.w, *contact, mode=rope_contacts, taut=taut) \
             if model.s >= 3 else None
         cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
@@ -303,7 +303,7 @@ class XPBDSolver:
             self._constraints(1.0 / (dt * dt))
         if ti.static(sid == ROPE_COLLIDE):
             if ti.static(self.has_taut):
-                self.inext.taut_f(self.ropecol.taut, self.ropecol.taut_n)
+                self.inext.taut_f(self.ropecol.taut, self.ropecol.taut_n, self.ropecol.room)
             self.ropecol.solve_f()
         if ti.static(sid == SELF_COLLIDE):
             self.selfcol.solve_f()
