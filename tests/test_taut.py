@@ -7,18 +7,19 @@ import sandbox.maneuvers  # noqa: F401
 from sandbox.solvers.rope_chain import TAUT
 from tests.levelkit import solver_masses, world_from_text as _world
 
-# V: pinned at both ends, 6.3 mm of sag at its middle particle, both halves straight: taut.
-# S: pinned at both ends 0.36 m apart with 0.4 m of rope: slack.
-# F: pinned at its start only.
+# A rope pinned at both ends 0.4 m apart, 6.3 mm of sag at its middle particle, both halves straight: taut.
+TAUT_ROPE = """    - {name: NAME, points: [[-0.2, 0.5, 0], [0.0, 0.4937, 0], [0.2, 0.5, 0]], rod_length: 0.01, radius: 0.006,
+       pins: [start, end]}
+"""
+
+# V: taut. S: pinned at both ends 0.36 m apart with 0.4 m of rope: slack. F: pinned at its start only.
 ROPES = """
 version: 1
 name: taut
 scene:
   gravity: [0, -9.81, 0]
   ropes:
-    - {name: V, points: [[-0.2, 0.5, 0], [0.0, 0.4937, 0], [0.2, 0.5, 0]], rod_length: 0.01, radius: 0.006,
-       pins: [start, end]}
-    - {name: S, points: [[-0.18, 0.8, 0], [0.0, 0.7128, 0], [0.18, 0.8, 0]], rod_length: 0.01, radius: 0.006,
+""" + TAUT_ROPE.replace("NAME", "V") + """    - {name: S, points: [[-0.18, 0.8, 0], [0.0, 0.7128, 0], [0.18, 0.8, 0]], rod_length: 0.01, radius: 0.006,
        pins: [start, end]}
     - {name: F, points: [[0.5, 0.8, 0], [0.5, 0.6, 0]], rod_length: 0.01, radius: 0.006, pins: [start]}
 sim: {fps: 60, substeps: 20, iterations: 4}
@@ -100,9 +101,7 @@ name: drawn
 scene:
   gravity: [0, -9.81, 0]
   ropes:
-    - {name: T, points: [[-0.2, 0.5, 0], [0.0, 0.4937, 0], [0.2, 0.5, 0]], rod_length: 0.01, radius: 0.006,
-       pins: [start, end]}
-    - {name: C, points: [[0.0, 0.6, 0.013], [0.0, 0.3, 0.013]], rod_length: 0.01, radius: 0.006, pins: [start]}
+""" + TAUT_ROPE.replace("NAME", "T") + """    - {name: C, points: [[0.0, 0.6, 0.013], [0.0, 0.3, 0.013]], rod_length: 0.01, radius: 0.006, pins: [start]}
 sim: {fps: 60, substeps: 20, iterations: 4}
 fsm:
   - {run: MoveTo, with: {body: C, sites: [end], to: [0.0, 0.36, -0.08], speed: 0.3}}
@@ -139,9 +138,7 @@ name: pressed
 scene:
   gravity: [0, -9.81, 0]
   ropes:
-    - {name: V, points: [[-0.2, 0.5, 0], [0.0, 0.4937, 0], [0.2, 0.5, 0]], rod_length: 0.01, radius: 0.006,
-       pins: [start, end]}
-    - {name: P, points: [[-0.005, 0.5007, 0], [0.005, 0.5007, 0]], rod_length: 0.01, radius: 0.006,
+""" + TAUT_ROPE.replace("NAME", "V") + """    - {name: P, points: [[-0.005, 0.5007, 0], [0.005, 0.5007, 0]], rod_length: 0.01, radius: 0.006,
        pins: [start, end]}
 sim: {fps: 60, substeps: 20, iterations: 4}
 fsm:
