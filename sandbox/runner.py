@@ -136,7 +136,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         summary["arch"] = world.arch
         summary["particles"] = world.model.n
         summary["constraints"] = world.model.m
-        summary["stages"] = [s for s in world.solver.stages]
+        summary["stages"] = [*world.solver.stages_zero, *world.solver.stages]
         if opts.frames_every or opts.video or opts.gif:
             from sandbox.io.frames import FrameRecorder, KnotFollower
 

@@ -93,6 +93,7 @@ class World:
                 objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
                 chain_sweeps=sim.chain_sweeps, chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts,
                 cloth_joint=sim.cloth_joint, cloth_joint_every=sim.cloth_joint_every,
+                prestabilize=sim.prestabilize,
             )
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
         # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).

@@ -30,15 +30,19 @@ def test_self_knot_ties_a_trefoil_headless():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("contacts", "hold"), [
-    pytest.param("average", "fixed", marks=pytest.mark.xfail(
+@pytest.mark.parametrize(("contacts", "hold", "prestabilize"), [
+    pytest.param("average", "fixed", False, marks=pytest.mark.xfail(
         strict=True, reason="known defect: averaged rope contacts let a held knot gain energy (README, 'Held knots')")),
-    pytest.param("balanced", "fixed", marks=pytest.mark.xfail(
+    pytest.param("balanced", "fixed", False, marks=pytest.mark.xfail(
         strict=True, reason="known defect: the tight trefoil held by fixed ends jitters past 5 m/s with balanced "
                             "contacts too (6.5 m/s, 0.025 -> 0.032 J); the level keeps pulling (README, 'Tight knots')")),
-    ("balanced", "pull"),  # as shipped: the hands keep pulling once the knot is tight
+    pytest.param("balanced", "fixed", True, marks=pytest.mark.xfail(
+        strict=True, reason="with step 0 (sim.prestabilize) the held trefoil settles but not within the bar: "
+                            "11 m/s in the first second of the hold, 5.1 m/s in the second, then at most 3.5 m/s; "
+                            "0.027 J in the last second against 0.013 J in seconds 2-3 (README, 'Held knots')")),
+    ("balanced", "pull", True),  # as shipped: the hands keep pulling once the knot is tight
 ])
-def test_a_tied_knot_held_by_its_ends_comes_to_rest(contacts, hold):
+def test_a_tied_knot_held_by_its_ends_comes_to_rest(contacts, hold, prestabilize):
     """After the FSM the rope's kinetic energy may not grow (tools/hold_rest.py), with its ends held
     fixed (nothing drives the rope) or still pulled by the hands."""
     from sandbox.world import World
@@ -46,7 +50,7 @@ def test_a_tied_knot_held_by_its_ends_comes_to_rest(contacts, hold):
     text = (ROOT / "levels" / "self_knot.yaml").read_text()
     assert "hold: pull" in text
     level = load_level_from_string(text.replace("hold: pull", f"hold: {hold}"),
-                                   overrides={"sim.rope_contacts": contacts})
+                                   overrides={"sim.rope_contacts": contacts, "sim.prestabilize": prestabilize})
     w = World(level, base_dir=ROOT / "levels")
     w.attach_fsm()
     while not w.fsm.finished:
@@ -238,9 +242,9 @@ SHIFTS = [(0, 0, 0), (0, 0.01, 0), (0, -0.02, 0), (0, 0.3, 0), (0.05, 0, 0), (0,
 
 @pytest.mark.slow
 def test_self_knot_ties_a_trefoil_wherever_the_rope_hangs():
-    """The knot's identity does not hinge on the exact placement alone (measured with balanced rope
-    contacts: 4 of 6, each within every criterion; with averaged ones 3 of 6, 5 of 6 before the chain
-    step's guards, 1 of 6 with the tail let go)."""
+    """The knot's identity does not hinge on the exact placement alone (measured as shipped, balanced
+    rope contacts and step 0: 5 of 6, each within every criterion; without step 0 4 of 6; with averaged
+    contacts 3 of 6, 5 of 6 before the chain step's guards, 1 of 6 with the tail let go)."""
     import sys
     sys.path.insert(0, str(ROOT / "tools"))
     from sweep_level import shifted_ropes

@@ -396,7 +396,11 @@ class Sim(_Model):
     contact pass shares corrections among a particle's contacts: ``average``
     (per particle), ``balanced`` (per contact, equal and opposite) or ``split``
     (mass splitting: equal and opposite at the full rate; see
-    ``sandbox/collision/ropecollision.py``). ``cloth_joint`` is the number of
+    ``sandbox/collision/ropecollision.py``). ``prestabilize`` runs one rope
+    contact pass and one chain step on the positions each substep starts
+    from, before its prediction, so that the overlap the last substep left
+    is pushed apart without adding speed (a tight knot held by its ends;
+    ``sandbox/solvers/xpbd.py``, step 0). ``cloth_joint`` is the number of
     conjugate-gradient iterations of a Newton step that solves all rows and
     columns of each inextensible cloth together, after the chain sweeps of
     every iteration (0: none; see ``sandbox/solvers/cloth_joint.py``), on
@@ -420,6 +424,7 @@ class Sim(_Model):
     chain_sweeps: between(int, 1, 16) = 1
     chain_tolerance: between(float, 0.0, 1.0) = 1e-3
     rope_contacts: RopeContacts = "average"
+    prestabilize: Bool = False
     cloth_joint: between(int, 0, 64) = 0
     cloth_joint_every: between(int, 1, 200) = 1
     max_substeps: between(int, 1, 200) | None = None

@@ -2,6 +2,10 @@
 
 Per substep (each pass O(n) in particles or constraints):
 
+0. optionally (``prestabilize``), one rope contact pass and one chain step
+   on the positions the substep starts from, before the prediction takes
+   them as x_prev: the overlap and rod error the last substep left are
+   removed without turning into velocity -- O(n)
 1. predict: gravity, pulling forces, damping, kinematic targets (Control) -- O(n)
 2. broad phase: spatial hash of rope segments -- O(n)
 3. distance constraints (rods Eq. 2, bending Eq. 3, cloth edges), graph
@@ -51,7 +55,7 @@ from sandbox.solvers.cloth_joint import JointClothProjection, cloth_chain_groups
 from sandbox.solvers.rope_chain import ChainProjection, build_chains
 
 PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP, \
-    JOINT = range(11)
+    JOINT, SETTLE = range(12)
 # Most iterations one fused substep kernel unrolls (the shipped levels use 1-4).
 FUSE_ITERATIONS = 4
 STAGE_NAMES = {
@@ -66,6 +70,7 @@ STAGE_NAMES = {
     ROPE_INEXT: "chains",
     RESWEEP: "chain_resweeps",
     JOINT: "cloth_joint",
+    SETTLE: "settle",
 }
 
 
@@ -106,7 +111,8 @@ class XPBDSolver:
     def __init__(self, model: Model, state: State, control: Control, *, gravity, ground=None, objects=None,
                  iterations: int = 1, self_collision_every: int = 1, chain_sweeps: int = 1,
                  chain_tolerance: float = 1e-3, rope_contacts: str = "average",
-                 fuse_iterations: int | None = None, cloth_joint: int = 0, cloth_joint_every: int = 1) -> None:
+                 fuse_iterations: int | None = None, cloth_joint: int = 0, cloth_joint_every: int = 1,
+                 prestabilize: bool = False) -> None:
         self.model = model
         self.st = state
         self.ctl = control
@@ -151,6 +157,17 @@ class XPBDSolver:
         cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
         self.joint = JointClothProjection(model, state, self.w, cloth_groups, *contact, peeled=self.inext.peeled,
                                           iterations=int(cloth_joint)) if cloth_groups else None
+        self.prestabilize = bool(prestabilize) and self.ropecol is not None and self.inext is not None
+        # Step 0: what overlap and rod error the last substep left is removed
+        # before the prediction, which takes x_prev from the result: the
+        # velocity the substep starts with is unchanged, so pushing ropes
+        # apart where they already overlapped (a tight knot pulled into
+        # itself by its held ends) adds no speed to them. A launch of its
+        # own: fused, it would make every substep kernel longer, and their
+        # compile time grows faster than their length (the knot drafts' first
+        # frame: 135 s with it fused, 11 s as a launch of its own, the rest of
+        # the substep already compiled).
+        self.stages_zero = (SETTLE, ROPE_HASH, ROPE_COLLIDE, ROPE_INEXT) if self.prestabilize else ()
         pre = [PREDICT]
         if self.ropecol is not None:
             pre.append(ROPE_HASH)
@@ -233,6 +250,12 @@ class XPBDSolver:
             st.lam[e] = 0.0
 
     @ti.func
+    def _settle(self):
+        # x_prev = x: the rope contact pass measures no slip (friction) in step 0.
+        for i in self.st.x:
+            self.st.x_prev[i] = self.st.x[i]
+
+    @ti.func
     def _constraints(self, inv_dt2: ti.f32):
         st = self.st
         mdl = self.model
@@ -293,6 +316,8 @@ class XPBDSolver:
 
     @ti.func
     def _stage(self, sid: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
+        if ti.static(sid == SETTLE):
+            self._settle()
         if ti.static(sid == PREDICT):
             self._predict(dt, frac)
         if ti.static(sid == SELF_LISTS):
@@ -384,6 +409,8 @@ class XPBDSolver:
         """One substep (k of ``substeps``); ``frac`` is how far through the frame it ends."""
         gh, gmu = self._ground()
         whole, chunk, rest = self.variants[self._skips(k, substeps)]
+        if self.stages_zero:
+            self._run_k(self.stages_zero, dt, frac, gh, gmu)
         if self.fused:
             self._run_k(whole, dt, frac, gh, gmu)
             return
@@ -397,7 +424,7 @@ class XPBDSolver:
     def profile_substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
         """The same substep, one launch per pass, accumulating ``self.timings`` (ms)."""
         gh, gmu = self._ground()
-        for sid in self.variants[self._skips(k, substeps)][0]:
+        for sid in self.stages_zero + self.variants[self._skips(k, substeps)][0]:
             t0 = time.perf_counter()
             self._stage_k(sid, dt, frac, gh, gmu)
             ti.sync()
