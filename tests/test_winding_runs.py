@@ -19,11 +19,17 @@ def test_rope_wind_reaches_its_criteria_headless():
     assert s["success"] and s["exit_code"] == 0, s["criteria"]
 
 
-def test_self_knot_ties_a_trefoil_headless():
-    s = _run("self_knot.yaml")
+def _tied(level: str, knot: str) -> dict:
+    """Run a shipped knot level headless; it passes, ties ``knot``; its criteria's values by metric."""
+    s = _run(level)
     assert s["success"] and s["exit_code"] == 0, s["criteria"]
     value = {c["metric"]: c["value"] for c in s["criteria"]}
-    assert value["knot"] == "trefoil_left"
+    assert value["knot"] == knot
+    return value
+
+
+def test_self_knot_ties_a_trefoil_headless():
+    value = _tied("self_knot.yaml", "trefoil_left")
     # A tight trefoil in a 12 mm rope is more than a rope diameter across and holds more than
     # 0.1 m of rope (its ideal closed ropelength is 16.4 diameters, 0.2 m): the metrics measure it.
     assert 0.012 < value["knot_size"] <= 0.05 and 0.1 < value["knot_length"] <= 0.3, value
@@ -33,10 +39,7 @@ def test_self_knot_ties_a_trefoil_headless():
 def test_granny_knot_ties_a_granny_on_the_box_headless():
     """Two ropes tied by two half knots of the same sense read `granny_left` (a square would read
     `square`), one tight knot on the box top within every criterion (about 80 s on 2 cores)."""
-    s = _run("granny_knot.yaml")
-    assert s["success"] and s["exit_code"] == 0, s["criteria"]
-    value = {c["metric"]: c["value"] for c in s["criteria"]}
-    assert value["knot"] == "granny_left"
+    value = _tied("granny_knot.yaml", "granny_left")
     # Two half knots in a 12 mm rope, drawn together: more than one trefoil's worth of rope, one knot.
     assert 0.2 < value["knot_length"] <= 0.5 and 0.02 < value["knot_size"] <= 0.05, value
 

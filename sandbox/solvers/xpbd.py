@@ -164,7 +164,7 @@ class XPBDSolver:
         # apart where they already overlapped (a tight knot pulled into
         # itself by its held ends) adds no speed to them. A launch of its
         # own: fused, it would make every substep kernel longer, and their
-        # compile time grows faster than their length (the knot drafts' first
+        # compile time grows faster than their length (the knot levels' first
         # frame: 135 s with it fused, 11 s as a launch of its own, the rest of
         # the substep already compiled).
         self.stages_zero = (SETTLE, ROPE_HASH, ROPE_COLLIDE, ROPE_INEXT) if self.prestabilize else ()
