@@ -56,9 +56,7 @@ def test_prestabilized_overlap_is_pushed_apart_without_speed(frames):
 
 
 def test_prestabilize_is_off_unless_asked_and_must_be_a_boolean():
-    text = CROSSED.replace("prestabilize: PRE", "rope_contacts: split")
-    text = text.replace(", rope_contacts: split, rope_contacts: split", ", rope_contacts: split")
-    assert load_level_from_string(text).sim.prestabilize is False
+    assert load_level_from_string(CROSSED.replace(", prestabilize: PRE", "")).sim.prestabilize is False
     with pytest.raises(LevelError, match="prestabilize"):
         load_level_from_string(CROSSED.replace("PRE", "'yes'"))
 
