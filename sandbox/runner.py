@@ -19,6 +19,7 @@ import traceback
 
 import numpy as np
 
+from sandbox import runtime
 from sandbox.io.outputs import MetricsLog, write_json_atomic, write_meshes, write_state
 
 WARMUP_FRAMES = 3  # JIT compilation happens in the first frames; kept out of timings
@@ -134,6 +135,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         world = sim.world
         world.profile_every = opts.profile_every
         summary["arch"] = world.arch
+        summary["fast_compile"] = runtime.fast_compile()  # frames run about 1.1x slower
         summary["particles"] = world.model.n
         summary["constraints"] = world.model.m
         summary["stages"] = [*world.solver.stages_zero, *world.solver.stages]

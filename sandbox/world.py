@@ -94,6 +94,7 @@ class World:
                 chain_sweeps=sim.chain_sweeps, chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts,
                 cloth_joint=sim.cloth_joint, cloth_joint_every=sim.cloth_joint_every,
                 prestabilize=sim.prestabilize,
+                rope_inelastic=sim.rope_inelastic,
             )
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
         # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).

@@ -335,3 +335,25 @@ def test_closing_a_level_frees_its_field_tree():
         sim.step()
     with pytest.raises(RuntimeError, match="closed"):
         sim.rope_positions("cord")  # a read of freed fields would crash the process
+
+
+# ------------------------------------------------------------------ runtime
+def test_runtime_fast_compile_is_one_per_process_and_read_from_the_environment(monkeypatch):
+    """The test processes run with SANDBOX_FAST_COMPILE=1 unless it is set otherwise (tests/conftest.py): Taichi's
+    advanced optimisations are off then; a second init may not change it, and the variable takes only 0 or 1."""
+    import os
+
+    from sandbox import runtime
+
+    on = os.environ["SANDBOX_FAST_COMPILE"] == "1"
+    assert runtime.fast_compile() is on
+    assert ti.lang.impl.current_cfg().advanced_optimization is not on
+    assert runtime.init("cpu") == runtime.current_arch()  # the same settings: a no-op
+    with pytest.raises(runtime.RuntimeConfigError, match=f"fast_compile={on}"):
+        runtime.init("cpu", fast_compile=not on)
+    monkeypatch.setenv("SANDBOX_FAST_COMPILE", "yes")
+    with pytest.raises(ValueError, match=r"SANDBOX_FAST_COMPILE='yes' is not allowed; allowed: 1 \(on\) or 0 \(off\)"):
+        runtime.init("cpu")
+    monkeypatch.setenv("SANDBOX_FAST_COMPILE", "0" if on else "1")
+    with pytest.raises(runtime.RuntimeConfigError):
+        runtime.init("cpu")

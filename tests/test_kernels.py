@@ -382,7 +382,12 @@ def _contact_pass_reference(x, w, seg, rope, rad, skip, mode, rods=None):
     """One rope contact pass in float64 NumPy, brute force over every allowed pair (no slip: no friction).
 
     ``rods``: each segment's rest length (m); a particle then moves at most
-    THROW of its shortest one.
+    THROW of its shortest one. Returns the positions after the pass, the
+    number of contacts and, per particle, whether a pair of its segments
+    lies at the contact distance within 1e-5 of it: whether that pair is a
+    contact at all then turns on the last bits of float32 arithmetic (and
+    Taichi's optimisations may order them differently), and a contact of
+    zero depth still counts in the averaging and the mass split.
     """
     from sandbox.collision.ropecollision import RELAX, THROW
 
@@ -396,6 +401,10 @@ def _contact_pass_reference(x, w, seg, rope, rad, skip, mode, rods=None):
     wa0, wa1 = w[a0] * (1 - u), w[a1] * u
     wsum = wa0 * (1 - u) + wa1 * u + w[b0] * (1 - v) ** 2 + w[b1] * v**2
     hit = (dist < target) & (dist > 1e-9) & (wsum > 1e-12)
+    fragile_pair = np.abs(dist - target) < 1e-5 * target
+    fragile = np.zeros(len(x), bool)
+    for q in (a0, a1, b0, b1):
+        fragile[q[fragile_pair]] = True
     a0, a1, b0, b1, u, v, c1, c2, dist, target, wa0, wa1, wsum = (
         q[hit] for q in (a0, a1, b0, b1, u, v, c1, c2, dist, target, wa0, wa1, wsum))
     count = np.zeros(len(x))
@@ -420,7 +429,7 @@ def _contact_pass_reference(x, w, seg, rope, rad, skip, mode, rods=None):
         move = np.linalg.norm(acc, axis=1)
         over = move > cap
         acc[over] *= (cap[over] / move[over])[:, None]
-    return x + acc, int(hit.sum())
+    return x + acc, int(hit.sum()), fragile
 
 
 @pytest.mark.parametrize("mode", ["average", "balanced", "split"])
@@ -456,12 +465,17 @@ def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mod
     rod = np.array([r.rod_length for r in data.ropes])
     skip = np.maximum(2, np.ceil(1.0 + 2.0 * np.array([r.radius for r in data.ropes]) / rod - 1e-9))
     rods = rod[data.segment_rope]
-    want, contacts = _contact_pass_reference(x32.astype(np.float64), w, data.segments, data.segment_rope, rad, skip,
-                                             mode, rods)
+    want, contacts, fragile = _contact_pass_reference(x32.astype(np.float64), w, data.segments, data.segment_rope,
+                                                      rad, skip, mode, rods)
     assert contacts > 50, "too few contacts for the test to mean anything"
+    # rope c (rods twice its radius) touches itself at the contact distance at every bend
+    assert fragile.mean() < 0.3, "too many borderline contacts for the test to mean anything"
     moved = np.abs(want - x32).max()
     assert moved > 1e-3
-    np.testing.assert_allclose(got, want, atol=2e-6 + 1e-4 * moved)
+    np.testing.assert_allclose(got[~fragile], want[~fragile], atol=2e-6 + 1e-4 * moved)
+    # where a contact is borderline, the particle still moves by about as much as the reference says
+    np.testing.assert_allclose(np.linalg.norm(got - x32, axis=1)[fragile], np.linalg.norm(want - x32, axis=1)[fragile],
+                               atol=0.5 * moved)
 
     dx = got - x32
     momentum = np.linalg.norm((dx / w[:, None]).sum(0))

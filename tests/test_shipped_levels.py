@@ -23,4 +23,4 @@ def test_shipped_level_is_valid_and_round_trips(path):
 def test_levels_folder_is_not_empty():
     """The README's main level and the rope levels are shipped."""
     names = {p.stem for p in LEVELS}
-    assert {"drape_box", "rope_hang", "rope_wind", "rope_wind_2", "rope_wind_3", "self_knot", "granny_knot"} <= names
+    assert {"drape_box", "rope_hang", "rope_wind", "rope_wind_2", "rope_wind_3", "self_knot", "granny_knot", "square_knot"} <= names

@@ -7,7 +7,7 @@ By default only the ropes move (for scenes whose maneuvers are relative to
 the ropes and that have nothing else they touch, such as self_knot); with
 ``--rigid`` the objects, the cloths' centres and the camera move with them,
 and so do the FSM's absolute points named by ``--shift-args`` (the
-arguments of its top-level states, e.g. the drafts' ``C_TOWARD``).
+arguments of its top-level states, e.g. the knot levels' ``C_TOWARD``).
 
 Usage: python tools/sweep_level.py LEVEL.yaml [--substeps 15 20 25] [--iterations 3 4 5]
                                    [--shift 0,0,0 0,0.01,0 ...] [--rigid] [--shift-args NAME ...]

@@ -33,6 +33,21 @@ def inelastic_velocity(v, n, v_surface):
 
 
 @ti.func
+def push_settled_velocity(v, push, inv_dt: ti.f32):
+    """``v`` less what a substep's summed contact ``push`` (m) put into it: its part along the push, at most
+    |push| / dt and never past zero; a velocity into the push, or no push, is kept (inelastic particle
+    contacts: cloth self-collision, rope capsules)."""
+    out = v
+    lq = push.norm()
+    if lq > 0.0:
+        d = push / lq
+        vn = v.dot(d)
+        if vn > 0.0:
+            out = v - ti.min(vn, lq * inv_dt) * d
+    return out
+
+
+@ti.func
 def friction_velocity(v, n, dv_max, v_surface):
     """Coulomb friction on a velocity.
 

@@ -38,6 +38,7 @@ import numpy as np
 import taichi as ti
 
 from sandbox import runtime
+from sandbox.collision.contacts import push_settled_velocity
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
 from sandbox.constraints.capsule import segment_closest
 
@@ -70,7 +71,8 @@ class RopeCollision:
             of its shortest rod; 0 off the ropes).
     """
 
-    def __init__(self, model, state, w, hit=None, normal=None, mode: str = "average", taut=None) -> None:
+    def __init__(self, model, state, w, hit=None, normal=None, mode: str = "average", taut=None,
+                 inelastic: bool = False) -> None:
         if mode not in ("average", "balanced", "split"):
             raise ValueError(f"rope contact mode {mode!r}: use average, balanced or split")
         self.model = model
@@ -126,6 +128,10 @@ class RopeCollision:
         np.minimum.at(cap, d.segments[:, 1], THROW * seg_len)
         self.max_move = ti.field(ti.f32, shape=model.n)
         runtime.defer(self.max_move.from_numpy, np.where(np.isfinite(cap), cap, 0.0).astype(np.float32))
+        # Inelastic contacts: each particle's pushes summed over a substep,
+        # taken back out of its velocity along their direction (``settle``).
+        self.inelastic = bool(inelastic)
+        self.push = ti.Vector.field(3, ti.f32, shape=model.n) if self.inelastic else None
 
     @ti.func
     def _midpoints(self):
@@ -277,11 +283,26 @@ class RopeCollision:
                 if move > self.max_move[i]:  # a near-held lever's throw (see THROW)
                     dx *= self.max_move[i] / move
                 self.st.x[i] = self.st.x[i] + dx
+                if ti.static(self.inelastic):
+                    self.push[i] += dx
                 if ti.static(self.record):
                     la = acc.norm()
                     if la > 1e-12:
                         self.hit[i] = 1.0
                         self.normal[i] = acc / la
+
+    @ti.func
+    def forget_f(self):
+        """Clear the pushes summed so far (the prediction: a substep's pushes start from zero)."""
+        for i in self.push:
+            self.push[i] = ti.math.vec3(0.0)
+
+    @ti.func
+    def settle(self, i, v, inv_dt: ti.f32):
+        """Particle i's velocity ``v`` less what this substep's rope contact pushes put into it (inelastic
+        rope contacts: a push out of an overlap moves the particle, but it leaves no speed apart, at most
+        the push over the step and never past zero along it). Called from the velocity pass."""
+        return push_settled_velocity(v, self.push[i], inv_dt)
 
     @ti.func
     def solve_f(self):

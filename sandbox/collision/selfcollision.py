@@ -40,6 +40,7 @@ without it, 0.1-0.2 with it).
 
 import taichi as ti
 
+from sandbox.collision.contacts import push_settled_velocity
 from sandbox.collision.hashgrid import HashGrid, cell_of, hash_cell, neighbor_offset
 
 # Above this share of dirty particles the lists are rebuilt rather than patched.
@@ -373,14 +374,8 @@ class ClothSelfCollision:
         out = v
         k = i - self.start
         if k >= 0:
-            q = self.push[k]
-            lq = q.norm()
-            if lq > 0.0:
-                d = q / lq
-                vn = v.dot(d)
-                if vn > 0.0:
-                    out = v - ti.min(vn, lq * inv_dt) * d
-                self.push[k] = ti.math.vec3(0.0)
+            out = push_settled_velocity(v, self.push[k], inv_dt)
+            self.push[k] = ti.math.vec3(0.0)
         return out
 
     @ti.kernel

@@ -112,7 +112,7 @@ class XPBDSolver:
                  iterations: int = 1, self_collision_every: int = 1, chain_sweeps: int = 1,
                  chain_tolerance: float = 1e-3, rope_contacts: str = "average",
                  fuse_iterations: int | None = None, cloth_joint: int = 0, cloth_joint_every: int = 1,
-                 prestabilize: bool = False) -> None:
+                 prestabilize: bool = False, rope_inelastic: bool = False) -> None:
         self.model = model
         self.st = state
         self.ctl = control
@@ -152,8 +152,9 @@ class XPBDSolver:
         self.has_taut = model.s >= 3 and self.inext is not None and self.inext.has_ropes
         taut = (ti.field(ti.f32, shape=model.n), ti.Vector.field(3, ti.f32, shape=model.n),
                 ti.field(ti.f32, shape=model.n)) if self.has_taut else None
-        self.ropecol = RopeCollision(model, state, self.w, *contact, mode=rope_contacts, taut=taut) \
-            if model.s >= 3 else None
+        self.ropecol = RopeCollision(model, state, self.w, *contact, mode=rope_contacts, taut=taut,
+                                     inelastic=rope_inelastic) if model.s >= 3 else None
+        self.rope_inelastic = self.ropecol is not None and self.ropecol.inelastic
         cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
         self.joint = JointClothProjection(model, state, self.w, cloth_groups, *contact, peeled=self.inext.peeled,
                                           iterations=int(cloth_joint)) if cloth_groups else None
@@ -248,6 +249,8 @@ class XPBDSolver:
                 st.x[i] = st.x[i] + dt * v
         for e in st.lam:
             st.lam[e] = 0.0
+        if ti.static(self.rope_inelastic):
+            self.ropecol.forget_f()
 
     @ti.func
     def _settle(self):
@@ -312,6 +315,8 @@ class XPBDSolver:
                 self.c_hit[i] = 0.0
             if ti.static(self.has_selfcol):
                 v = self.selfcol.settle(i, v, inv_dt)
+            if ti.static(self.rope_inelastic):
+                v = self.ropecol.settle(i, v, inv_dt)
             st.v[i] = v
 
     @ti.func
