@@ -26,7 +26,9 @@ Per substep (each pass O(n) in particles or constraints):
    of each cloth together, by preconditioned CG (``cloth_joint.py``) --
    O(n) per CG iteration
 8. velocities from positions; contacts inelastic (no velocity away from a
-   surface, nor from what a self-collision push added) and Coulomb friction -- O(n)
+   surface, nor from what a self-collision push added, nor, with
+   ``rope_inelastic``, from what a rope contact push added) and Coulomb
+   friction -- O(n)
 
 Steps 3-7b repeat ``iterations`` times. Only the passes the scene needs are
 compiled in (``self.stages``, fixed when the solver is built). A whole
