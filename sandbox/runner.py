@@ -135,7 +135,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         world = sim.world
         world.profile_every = opts.profile_every
         summary["arch"] = world.arch
-        summary["fast_compile"] = runtime.fast_compile()  # frames run about 1.1x slower
+        summary["fast_compile"] = runtime.fast_compile()  # frame times depend on it (README, "Compile time")
         summary["particles"] = world.model.n
         summary["constraints"] = world.model.m
         summary["stages"] = [*world.solver.stages_zero, *world.solver.stages]

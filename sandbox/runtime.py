@@ -119,10 +119,10 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
         The name of the backend in use (``x64``, ``cuda``, ...).
 
     Raises:
-        ValueError: ``arch`` is not one of the allowed names.
+        ValueError: ``arch`` is not one of the allowed names, or
+            ``SANDBOX_FAST_COMPILE`` is set to something other than 0 or 1.
         RuntimeConfigError: Taichi is already running on a different backend
             or with the other ``fast_compile``.
-        ValueError: ``SANDBOX_FAST_COMPILE`` is set to something other than 0 or 1.
     """
     if arch not in ARCHES:
         raise ValueError(f"arch {arch!r} is not allowed; allowed: {', '.join(ARCHES)}")

@@ -26,15 +26,14 @@ def run_shipped(level: str, overrides: dict | None = None) -> dict:
     level's chaotic run does not come out bitwise the same without them (``self_knot`` then
     overlaps 0.111 radius in one violent frame of its `Tightening`, against 0.048 shipped).
     """
-    import json as _json
     import os
     import subprocess
     import sys
 
     out = pathlib.Path(tempfile.mkdtemp())
-    sets = [f"--set={k}={_json.dumps(v)}" for k, v in (overrides or {}).items()]
-    cmd = [sys.executable, "-c", "import sys; from sandbox.cli import main; sys.exit(main())",
-           "run", str(ROOT / "levels" / level), "--out", str(out), "--quiet", *sets]
+    sets = [f"--set={k}={json.dumps(v)}" for k, v in (overrides or {}).items()]
+    cmd = [sys.executable, "-m", "sandbox.cli", "run", str(ROOT / "levels" / level), "--out", str(out), "--quiet",
+           *sets]
     env = {**os.environ, "SANDBOX_FAST_COMPILE": "0"}
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=3600)
     path = out / "summary.json"
