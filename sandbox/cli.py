@@ -1,4 +1,4 @@
-"""Command line: ``sandbox run|play|check|bench``."""
+"""Command line: ``sandbox run|play|check|bench|sweep``."""
 
 from __future__ import annotations
 
@@ -76,6 +76,69 @@ def cmd_bench(a: argparse.Namespace) -> int:
     return bench(a)
 
 
+def cmd_sweep(a: argparse.Namespace) -> int:
+    from sandbox.sweep import SweepError, SweepOptions, load_sweep, run_sweep, write_reports
+    from sandbox.sweep import plan
+
+    if a.report:
+        if a.levels or a.standard or a.grid:
+            print("sandbox sweep --report DIR takes no levels, --standard or --grid", file=sys.stderr)
+            return 2
+        try:
+            reports = write_reports(pathlib.Path(a.report), plots=not a.no_plots)
+        except FileNotFoundError as exc:
+            print(exc, file=sys.stderr)
+            return 2
+        for rep in reports:
+            print(f"{rep['level']}: {rep['passed']}/{rep['runs']} passed")
+        print((pathlib.Path(a.report) / "summary.md").read_text())
+        return 0
+    problem = None
+    if not a.levels:
+        problem = "give one or more level files (or --report DIR)"
+    elif bool(a.standard) == bool(a.grid):
+        problem = "give exactly one of --standard and --grid FILE"
+    elif a.standard and (a.samples is not None or a.seed is not None):
+        problem = "--samples and --seed draw from the axes of --grid FILE, not from --standard"
+    elif a.seed is not None and a.samples is None:
+        problem = "--seed goes with --samples N"
+    elif a.samples is not None and a.samples < 1:
+        problem = f"--samples must be >= 1, got {a.samples}"
+    elif a.workers is not None and a.workers < 1:
+        problem = f"--workers must be >= 1, got {a.workers}"
+    elif a.timeout is not None and not a.timeout > 0:
+        problem = f"--timeout must be > 0 s, got {a.timeout}"
+    elif a.shared and a.backend != "ray":
+        problem = "--shared is for --backend ray (tasks write their outputs into --out on a shared file system)"
+    elif a.address and a.backend != "ray":
+        problem = "--address is for --backend ray"
+    if problem:
+        print(f"sandbox sweep: {problem}", file=sys.stderr)
+        return 2
+    try:
+        if a.standard:
+            variants_of, base, source = plan.standard_variants, None, "--standard"
+        else:
+            axes = load_sweep(a.grid)
+            base, source = pathlib.Path(a.grid).parent, a.grid
+            if a.samples is not None:
+                points = plan.sample_variants(axes, a.samples, a.seed or 0)
+            else:
+                points = plan.grid_variants(axes)
+            variants_of = lambda data: [("", v) for v in points]  # noqa: E731
+        opts = SweepOptions(out=pathlib.Path(a.out), workers=a.workers or 0, backend=a.backend, address=a.address,
+                            shared=a.shared, timeout=a.timeout, frames=a.frames, frames_every=a.frames_every or 0,
+                            threads=a.threads or 0, retry_errors=a.retry_errors, progress=not a.quiet,
+                            plots=not a.no_plots)
+        return run_sweep(a.levels, variants_of, opts, sweep_base=base, source=source)
+    except SweepError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    except (ValueError, ImportError) as exc:
+        print(f"sandbox sweep: {exc}", file=sys.stderr)
+        return 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sandbox", description="Geodesic Control sandbox for ropes and cloth")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -112,6 +175,30 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--save", help="write results as a new baseline JSON")
     b.add_argument("--arch", choices=ARCHES, default="cpu")
     b.set_defaults(fn=cmd_bench)
+    sw = sub.add_parser("sweep", help="run levels under many perturbations and report their pass rates")
+    sw.add_argument("levels", nargs="*")
+    sw.add_argument("--out", default="runs/sweep", help="sweep folder (default runs/sweep); a second run of the "
+                                                       "same sweep goes on where it stopped")
+    sw.add_argument("--standard", action="store_true",
+                    help="the shipped set: 6 placements x {as shipped, fast compile, substeps +25 %%, "
+                         "iterations +1}, plus object swaps for levels that wrap an object in cloth")
+    sw.add_argument("--grid", metavar="FILE", help="a sweep file of axes; runs their product")
+    sw.add_argument("--samples", type=int, metavar="N", help="N random points of --grid's axes instead of the product")
+    sw.add_argument("--seed", type=int, metavar="S", help="seed of --samples (default 0)")
+    sw.add_argument("--workers", type=int, metavar="K", help="runs at a time (default: this machine's cores)")
+    sw.add_argument("--threads", type=int, metavar="T", help="CPU threads per run (default: cores / workers)")
+    sw.add_argument("--backend", choices=("local", "ray"), default="local")
+    sw.add_argument("--address", help="Ray cluster to join (default: start a local Ray instance)")
+    sw.add_argument("--shared", action="store_true", help="ray: --out is on a file system every node sees")
+    sw.add_argument("--timeout", type=float, default=3600.0, metavar="S",
+                    help="seconds before a run is killed and recorded as a timeout (default 3600)")
+    sw.add_argument("--frames", type=int, help="frames per run (default: each level's own)")
+    sw.add_argument("--frames-every", type=int, metavar="K", help="each run writes a PNG every K frames")
+    sw.add_argument("--retry-errors", action="store_true", help="run again the runs whose row is not 'completed'")
+    sw.add_argument("--report", metavar="DIR", help="only re-render the reports and plots of DIR from its tables")
+    sw.add_argument("--no-plots", action="store_true", help="tables and reports without plots")
+    sw.add_argument("--quiet", action="store_true", help="no progress bar")
+    sw.set_defaults(fn=cmd_sweep)
     return p
 
 

@@ -72,3 +72,11 @@ def format_path(path: tuple[Any, ...]) -> str:
         else:
             out += f".{part}" if out else str(part)
     return out
+
+
+def syntax_issue(exc: Any, source: str) -> LevelIssue:
+    """The issue for a YAML syntax error (a ``yaml.MarkedYAMLError``), at its line and column."""
+    mark = exc.problem_mark or exc.context_mark
+    line, col = (mark.line + 1, mark.column + 1) if mark else (0, 0)
+    problem = " ".join(p for p in (exc.context, exc.problem) if p)
+    return LevelIssue(source, line, col, "", f"YAML syntax: {problem}")

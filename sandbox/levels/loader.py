@@ -21,7 +21,7 @@ import yaml
 from sandbox.levels import checks, yamlio
 from sandbox.levels.diagnostics import Finding, convert
 from sandbox.levels.expand import expand
-from sandbox.levels.issues import LevelError, LevelIssue, LevelWarning, Severity, format_path
+from sandbox.levels.issues import LevelError, LevelIssue, LevelWarning, Severity, format_path, syntax_issue
 from sandbox.levels.schema import FSM, Level, Macro
 from sandbox.maneuvers.base import REGISTRY, Maneuver
 
@@ -132,10 +132,7 @@ def check_level_text(
     try:
         doc = yamlio.parse(text)
     except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        line, col = (mark.line + 1, mark.column + 1) if mark else (0, 0)
-        problem = " ".join(p for p in (exc.context, exc.problem) if p)
-        return LevelCheck(None, [LevelIssue(source, line, col, "", f"YAML syntax: {problem}")], [])
+        return LevelCheck(None, [syntax_issue(exc, source)], [])
     if doc.data is None:
         doc.data = {}
     findings = [Finding(path, msg) for path, _, msg in doc.problems]

@@ -255,6 +255,9 @@ class ClothSpec(_Model):
             index ``j * nx + i``.
         size: extent along x and z (m).
         center: position of the cloth's centre (m).
+        yaw: turn of the cloth about the vertical through ``center`` (degrees,
+            counter-clockwise seen from above, as an object's y rotation);
+            grid axes, corners and control lines turn with it.
         mass: total mass (kg).
         thickness: collision thickness (m); None means 1.5 x particle spacing.
         stretch_compliance, shear_compliance, bend_compliance: XPBD
@@ -269,6 +272,7 @@ class ClothSpec(_Model):
     resolution: tuple[between(int, 2, 1024), between(int, 2, 1024)]
     size: tuple[Positive, Positive]
     center: Vec3
+    yaw: Float = 0.0
     mass: Positive = 0.5
     thickness: Positive | None = None
     stretch_compliance: NonNegative = 0.0

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sandbox.model.pose import euler_matrix
+
 # Edge kinds (one field per edge): distance constraints of different meaning.
 STRETCH, SHEAR, BEND = 0, 1, 2
 CORNERS = ("A", "B", "C", "D")
@@ -255,6 +257,8 @@ class ModelBuilder:
         ii, jj = ii.ravel(), jj.ravel()
         c = np.asarray(spec.center, float)
         x = np.stack([c[0] - w / 2 + ii * dx, np.full(ii.shape, c[1]), c[2] - d / 2 + jj * dz], axis=1)
+        if spec.yaw:  # turned about the vertical through the centre
+            x = (x - c) @ euler_matrix([0.0, float(spec.yaw), 0.0]).T + c
         k = nx * nz
         start = self.n
         thickness = float(spec.thickness) if spec.thickness is not None else 1.5 * min(dx, dz)
