@@ -135,7 +135,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         world = sim.world
         world.profile_every = opts.profile_every
         summary["arch"] = world.arch
-        summary["fast_compile"] = runtime.fast_compile()  # frame times depend on it (README, "Compile time")
+        summary["fast_compile"] = runtime.fast_compile()  # frame times depend on it (docs/how-it-works.md, "Compile time")
         summary["particles"] = world.model.n
         summary["constraints"] = world.model.m
         summary["stages"] = [*world.solver.stages_zero, *world.solver.stages]

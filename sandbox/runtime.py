@@ -111,7 +111,7 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
         debug: enable Taichi's bound checks (slow).
         fast_compile: skip Taichi's advanced IR optimisations: a world's
             kernels compile about 3x faster and its frames run about 1.1x
-            slower (README, "Compile time"). None reads the environment
+            slower (docs/how-it-works.md, "Compile time"). None reads the environment
             variable ``SANDBOX_FAST_COMPILE`` (``1`` for on, ``0`` or unset
             for off), so that the processes a run starts follow it.
 

@@ -172,13 +172,20 @@ def test_cloth_joint_range_and_round_trip():
     assert load_level_from_string(dump_level(level)) == level
 
 
-def test_the_readme_example_level_is_valid():
-    """The level that opens the README's "Levels" section loads, with every sim key it lists."""
-    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+def test_the_documented_example_level_is_valid():
+    """The level that opens docs/levels.md loads, with every sim key it lists."""
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "docs" / "levels.md").read_text()
     text = re.search(r"```yaml\n(version: 1\n.*?)```", readme, re.S).group(1)
     level = load_level_from_string(text)
     listed = set(re.findall(r"(\w+):", text[text.index("\nsim:"):text.index("\nmacros:")])) - {"sim"}
     assert listed == set(type(level.sim).model_fields), "the example lists every sim key, and only those"
+
+
+def test_the_readme_example_level_is_valid():
+    """The level in brief in the README loads."""
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = re.search(r"```yaml\n(version: 1\n.*?)```", readme, re.S).group(1)
+    assert load_level_from_string(text).name == "rope_wind"
 
 
 def test_adaptive_substeps_range_and_round_trip():

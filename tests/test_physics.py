@@ -330,7 +330,7 @@ def _cloth_stretch(sim: Sandbox, res: int, size: float) -> np.ndarray:
 
 def test_chain_sweeps_bring_cloth_over_box_edges_and_vertices_to_length():
     """An 81 x 81 cloth (1 cm spacing) draped over drape_box's box: three chain sweeps bring every edge
-    crossing its top edges and vertices within 3 % at the end (one leaves tens of percent: README), but
+    crossing its top edges and vertices within 3 % at the end (one leaves tens of percent: docs/benchmarks.md), but
     leave 20 % at impact; the joint step after them (rows and columns solved together) brings every
     edge within 0.5 % at the end and 5 % at impact; adaptive substeps (up to 40 while the cloth moves
     fast) bring the impact within 2 %; the cloth still rests on the box without sinking in."""

@@ -229,7 +229,8 @@ def test_table_keeps_whole_rows_and_the_latest_of_a_run(tmp_path):
 
 
 def _sweep(*args, timeout=600, **kw):
-    return subprocess.run([sys.executable, "-m", "sandbox.cli", "sweep", *map(str, args), "--quiet"],
+    extra = [] if "--report" in args else ["--threads", "1"]
+    return subprocess.run([sys.executable, "-m", "sandbox.cli", "sweep", *map(str, args), *extra, "--quiet"],
                           cwd=ROOT, capture_output=True, text=True, timeout=timeout, **kw)
 
 
@@ -244,7 +245,7 @@ def test_sweep_killed_half_way_resumes_without_repeating_or_losing_a_run(tmp_pat
     grid = _grid(tmp_path, "  place.scene.shift: [[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0], [0, 0, 0.01]]\n")
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "sandbox.cli", "sweep", str(TINY), "--grid", str(grid), "--out", str(out),
-           "--workers", "1", "--quiet"]
+           "--workers", "1", "--threads", "1", "--quiet"]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     csv = out / "sweep_tiny" / "runs.csv"
     deadline = time.time() + 300
@@ -320,12 +321,15 @@ def test_local_and_ray_backends_make_the_same_runs(tmp_path):
     assert (folder / "axes.png").exists() and (tmp_path / "ray" / "summary.md").exists()
 
 
-def test_sweep_command_line_errors():
+def test_sweep_command_line_errors(capsys):
     """Conflicting or missing options exit 2 with a message that says what to give."""
+    from sandbox.cli import main
+
     cases = [([str(TINY)], "exactly one of --standard and --grid"),
              ([str(TINY), "--standard", "--samples", "3"], "--samples and --seed"),
              ([str(TINY), "--standard", "--shared"], "--shared is for --backend ray"),
              (["--report", "/nonexistent/dir"], "holds no sweep table")]
     for args, text in cases:
-        res = _sweep(*args)
-        assert res.returncode == 2 and text in res.stderr, (args, res.stderr)
+        code = main(["sweep", *args, "--quiet"])
+        err = capsys.readouterr().err
+        assert code == 2 and text in err, (args, err)

@@ -55,14 +55,14 @@ def test_square_knot_ties_a_square_on_the_box_headless():
 @pytest.mark.slow
 @pytest.mark.parametrize(("contacts", "hold", "prestabilize", "inelastic"), [
     pytest.param("average", "fixed", False, False, marks=pytest.mark.xfail(
-        strict=True, reason="known defect: averaged rope contacts let a held knot gain energy (README, 'Held knots')")),
+        strict=True, reason="known defect: averaged rope contacts let a held knot gain energy (docs/benchmarks.md, 'Held knots')")),
     pytest.param("balanced", "fixed", False, False, marks=pytest.mark.xfail(
         strict=True, reason="known defect: the tight trefoil held by fixed ends jitters past 5 m/s with balanced "
-                            "contacts too (6.5 m/s, 0.025 -> 0.032 J); the level keeps pulling (README, 'Tight knots')")),
+                            "contacts too (6.5 m/s, 0.025 -> 0.032 J); the level keeps pulling (docs/benchmarks.md, 'Tight knots')")),
     pytest.param("balanced", "fixed", True, False, marks=pytest.mark.xfail(
         strict=True, reason="with step 0 (sim.prestabilize) the held trefoil settles but not within the bar: "
                             "11 m/s in the first second of the hold, 5.1 m/s in the second, then at most 3.5 m/s; "
-                            "0.027 J in the last second against 0.013 J in seconds 2-3 (README, 'Held knots')")),
+                            "0.027 J in the last second against 0.013 J in seconds 2-3 (docs/benchmarks.md, 'Held knots')")),
     # inelastic rope contacts: the fixed-end hold at most 0.27 m/s, 2.4e-4 J in the first second, 3.7e-5 J in the last
     ("balanced", "fixed", True, True),
     ("balanced", "pull", True, False),  # as shipped: the hands keep pulling once the knot is tight
@@ -296,7 +296,7 @@ def test_winding_clearance_sets_the_tube_its_targets_lie_on(clearance):
     np.testing.assert_allclose(np.hypot(g[:, 1] - 0.5, g[:, 2]), m.R, rtol=1e-2)  # T sags by under 0.1 mm
 
 
-# Rigid shifts of the whole scene, 0.2 mm to 2 mm (README, "How robust the winding levels are").
+# Rigid shifts of the whole scene, 0.2 mm to 2 mm (docs/benchmarks.md, "How robust the winding levels are").
 SMALL_SHIFTS = [(0.0002, 0, 0), (0, 0.0002, 0), (0, 0, 0.0002), (0.001, 0, 0), (0, 0.001, 0), (0, 0, -0.001),
                 (0.002, 0, 0), (0, 0, 0.002)]
 

@@ -13,7 +13,7 @@ not take each one's full correction. Two ways (``sim.rope_contacts``):
   contact have different counts, the pair's push is not equal and
   opposite: its centre of mass moves, a force nothing in the scene exerts.
   In a tight knot held still by its ends such pushes go round the knot's
-  loops and do net work (README, "Held knots").
+  loops and do net work (docs/benchmarks.md, "Held knots").
 - ``balanced``: the contacts are counted in a first gather, and each
   contact's correction is scaled by min(1, RELAX / k), k the largest count
   on its four particles, the same on both sides: every push is equal and
@@ -51,7 +51,7 @@ THROW = 1.0
 # Over-relaxation of the balanced contact pass: a contact whose particles
 # have at most k contacts each is scaled by min(1, RELAX / k). The plain
 # Jacobi step (1) left more overlap on wound ropes where it was chosen
-# (README, "Held knots").
+# (docs/benchmarks.md, "Held knots").
 RELAX = 1.5
 
 
