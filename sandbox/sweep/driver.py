@@ -142,6 +142,7 @@ def run_sweep(levels: list[str | pathlib.Path], variants_of: Callable[[dict], li
                 spec = RunSpec(run.id, run.level, run.overrides, run.compile, threads, opts.frames,
                                opts.frames_every, opts.timeout)
                 jobs.append(((lv, run), spec, lv.folder / "runs" / run.id))
+        jobs = interleave(jobs)
         print(f"sweep: {len(jobs)} runs to go ({skipped} already done) over {len(prepared)} level(s), "
               f"{workers} worker(s), {threads} thread(s) per run, backend {opts.backend} -> {out}", file=sys.stderr)
         code = _drive(jobs, tables, workers, opts)
@@ -156,6 +157,33 @@ def run_sweep(levels: list[str | pathlib.Path], variants_of: Callable[[dict], li
                   + (f"; fails most: {rep['most_failed']} ({rep['most_failed_count']})" if rep["most_failed"] else ""))
         print(f"tables, reports and plots in {out}", file=sys.stderr)
     return code
+
+
+def interleave(jobs: list) -> list:
+    """Jobs in the order they run: each level's in a fixed shuffled order, the levels taking turns.
+
+    A sweep stopped early (or still going) then holds about as many runs of
+    every level, each a random draw from that level's set: its partial pass
+    rates are unbiased, where the written order would cover the first
+    placements of the first level only. The shuffle is seeded by the run
+    ids, so the same sweep always runs in the same order.
+    """
+    import random
+
+    by_level: dict[str, list] = {}
+    for job in jobs:
+        by_level.setdefault(job[0][0].folder.name, []).append(job)
+    queues = []
+    for name, items in by_level.items():
+        items = sorted(items, key=lambda j: j[0][1].id)
+        random.Random(name).shuffle(items)
+        queues.append(items)
+    out = []
+    while any(queues):
+        for q in queues:
+            if q:
+                out.append(q.pop(0))
+    return out
 
 
 def _drive(jobs, tables, workers: int, opts: SweepOptions) -> int:

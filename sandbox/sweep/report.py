@@ -179,6 +179,45 @@ def plot_level(folder: pathlib.Path, header: list[str], rows: list[dict], title:
     return written
 
 
+def plot_summary(path: pathlib.Path, reports: list[dict[str, Any]]) -> None:
+    """Pass rate of every level with its 95 % interval, one bar per level."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 0.38 * len(reports) + 1.2))
+    ys = range(len(reports))
+    rates = [r["pass_rate"] or 0.0 for r in reports]
+    lo = [max(0.0, rate - r["interval95"][0]) for rate, r in zip(rates, reports)]
+    hi = [max(0.0, r["interval95"][1] - rate) for rate, r in zip(rates, reports)]
+    ax.barh(ys, rates, xerr=[lo, hi], color="#4c72b0", capsize=3)
+    for y, r in zip(ys, reports):
+        ax.text(1.02, y, f"{r['passed']}/{r['runs']}", va="center", fontsize=8)
+    ax.set_yticks(list(ys), [r["level"] for r in reports], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlim(0, 1.12)
+    ax.set_xlabel("pass rate (95 % Wilson interval)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def machine_name() -> str:
+    """This machine in words: host, CPU model and cores."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    from sandbox.sweep.driver import cores
+
+    return f"{platform.node()} ({model}, {cores()} cores, {platform.system()})"
+
+
 def level_folders(out: pathlib.Path) -> list[pathlib.Path]:
     """Folders of ``out`` that hold a level's table."""
     return sorted(p.parent for p in pathlib.Path(out).glob(f"*/{table.FILE}"))
@@ -199,11 +238,13 @@ def write_reports(out: pathlib.Path, *, plots: bool = True) -> list[dict[str, An
         header, rows = table.read(folder / table.FILE)
         rep = level_report(header, rows)
         rep["folder"] = folder.name
+        rep["level"] = rep["level"] or folder.name
         if plots and rows:
             rep["plots"] = plot_level(folder, header, rows, rep["level"])
         (folder / "report.json").write_text(json.dumps(rep, indent=1))
         reports.append(rep)
-    machine = f"{platform.node()} ({platform.machine()}, {platform.system()})"
+    hosts = sorted({str(r.get("host")) for folder in folders for r in table.read(folder / table.FILE)[1]})
+    machine = f"run on {', '.join(hosts)}; reported on {machine_name()}"
     lines = ["| level | runs | passed | pass rate | 95 % interval | fails most (runs) | did not finish |",
              "|---|---|---|---|---|---|---|"]
     csv_rows = []
@@ -217,7 +258,9 @@ def write_reports(out: pathlib.Path, *, plots: bool = True) -> list[dict[str, An
                      f"{most} | {dnf} |")
         csv_rows.append([rep["level"], rep["runs"], rep["passed"], rate, lo, hi, rep["most_failed"] or "",
                          rep["most_failed_count"], dnf])
-    (out / "summary.md").write_text("\n".join(lines) + f"\n\nReported on {machine}.\n")
+    (out / "summary.md").write_text("\n".join(lines) + f"\n\nRuns {machine}.\n")
+    if plots:
+        plot_summary(out / "summary.png", reports)
     import csv
 
     with open(out / "summary.csv", "w", newline="") as f:
