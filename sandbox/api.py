@@ -10,6 +10,9 @@ Example::
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import pathlib
 import time
 from typing import Callable
@@ -78,13 +81,21 @@ class Sandbox:
 
         Returns:
             The number of frames run (0 if less than a frame has accumulated).
+
+        Raises:
+            ValueError: ``wall_dt`` (or the clock's step) is negative, NaN or
+                infinite; the accumulator is left as it was.
         """
         if wall_dt is None:
             now = self._clock()
             wall_dt = 0.0 if self._last_clock is None else now - self._last_clock
+            if not math.isfinite(now):
+                raise ValueError(f"the clock read {now!r}; it must give finite seconds (nothing was run)")
             self._last_clock = now
-        if wall_dt < 0:
-            raise ValueError(f"wall_dt must be >= 0 (got {wall_dt})")
+        if isinstance(wall_dt, bool) or not isinstance(wall_dt, numbers.Real) or not math.isfinite(wall_dt) \
+                or wall_dt < 0:
+            raise ValueError(f"wall_dt must be a finite number of seconds >= 0, got {wall_dt!r} (nothing was run; "
+                             "the next valid call goes on)")
         self._accum += wall_dt
         n = 0
         while self._accum >= self.world.dt and n < self.max_frames_per_advance:

@@ -10,6 +10,7 @@ collisions). JIT warm-up is excluded; ``ti.sync()`` stops every timer.
 import json
 import pathlib
 import platform
+import sys
 import time
 
 import numpy as np
@@ -124,12 +125,22 @@ def machine() -> dict:
 
 def main(args) -> int:
     """``sandbox bench``: time levels, compare with budgets and a baseline."""
+    base = None
+    if args.baseline:
+        base, problem = read_baseline(pathlib.Path(args.baseline))
+        if problem:
+            print(f"sandbox bench: --baseline {args.baseline}: {problem}", file=sys.stderr)
+            return 2
+    if args.save:
+        save = pathlib.Path(args.save)
+        if save.is_dir() or not save.resolve().parent.is_dir():
+            print(f"sandbox bench: --save {args.save}: not a file in an existing folder", file=sys.stderr)
+            return 2
     runtime.init(args.arch)
     levels = args.levels or sorted(str(p) for p in pathlib.Path("levels").glob("*.yaml"))
     calib = calibrate()
     results = {"machine": machine(), "calibration_ms": calib, "levels": {}}
     code = 0
-    base = json.loads(pathlib.Path(args.baseline).read_text()) if args.baseline else None
     for path in levels:
         r = bench_level(path, frames=args.frames)
         r["ratio_to_calibration"] = r["frame_ms_p50"] / calib
@@ -139,7 +150,7 @@ def main(args) -> int:
             verdicts.append(f"p50 {r['frame_ms_p50']:.1f} ms over budget {b['frame_ms_p50']} ms")
         if b.get("frame_ms_p95") and r["frame_ms_p95"] > b["frame_ms_p95"]:
             verdicts.append(f"p95 {r['frame_ms_p95']:.1f} ms over budget {b['frame_ms_p95']} ms")
-        if base and r["level"] in base.get("levels", {}):
+        if base and r["level"] in base["levels"]:
             old = base["levels"][r["level"]]["ratio_to_calibration"]
             if r["ratio_to_calibration"] > 1.25 * old:
                 verdicts.append(f"ratio {r['ratio_to_calibration']:.2f} regressed from baseline {old:.2f} (>25%)")
@@ -150,5 +161,25 @@ def main(args) -> int:
               f"x{r['ratio_to_calibration']:.2f} calib  {'; '.join(verdicts) or 'ok'}")
     print(f"calibration (Jacobi PBD 163x163, 20 sweeps): {calib:.1f} ms/frame on {results['machine']['processor']}")
     if args.save:
-        pathlib.Path(args.save).write_text(json.dumps(results, indent=2))
+        from sandbox.io.outputs import write_json_atomic
+
+        write_json_atomic(pathlib.Path(args.save), results)
     return code
+
+
+def read_baseline(path: pathlib.Path) -> tuple[dict | None, str | None]:
+    """A baseline written by ``--save``, or what is wrong with it (checked before any timing)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        return None, f"cannot read it ({exc.strerror or exc})"
+    except (ValueError, UnicodeDecodeError) as exc:
+        return None, f"not JSON ({exc})"
+    levels = data.get("levels") if isinstance(data, dict) else None
+    if not isinstance(levels, dict):
+        return None, "not a baseline: it needs a 'levels' mapping, as 'sandbox bench --save' writes"
+    for name, entry in levels.items():
+        ratio = entry.get("ratio_to_calibration") if isinstance(entry, dict) else None
+        if isinstance(ratio, bool) or not isinstance(ratio, (int, float)) or not ratio > 0:
+            return None, f"levels.{name}.ratio_to_calibration must be a positive number, got {ratio!r}"
+    return data, None

@@ -9,10 +9,35 @@ import sys
 ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
 
 
+class UsageError(Exception):
+    """A user's mistake on the command line: one line on stderr, exit 2."""
+
+
 def _overrides(items: list[str]) -> dict:
     from sandbox.levels import parse_overrides
 
-    return parse_overrides(items)
+    try:
+        return parse_overrides(items)
+    except ValueError as exc:
+        raise UsageError(f"--set: {exc}") from None
+
+
+def _limits(a: argparse.Namespace) -> None:
+    """``--limit`` and ``--allow-dir`` into the environment, where level checks (and runs started from here) read them."""
+    import os
+
+    from sandbox.levels.limits import Limits, allow
+
+    if getattr(a, "limit", None):
+        try:
+            Limits.parse(",".join(a.limit), Limits.from_env())
+        except ValueError as exc:
+            raise UsageError(f"--limit: {exc}") from None
+        os.environ["SANDBOX_LIMITS"] = ",".join([os.environ.get("SANDBOX_LIMITS", ""), *a.limit]).strip(",")
+    for d in getattr(a, "allow_dir", None) or []:
+        if not pathlib.Path(d).is_dir():
+            raise UsageError(f"--allow-dir {d}: not a folder")
+        allow("SANDBOX_MESH_DIRS", str(pathlib.Path(d).resolve()))
 
 
 def cmd_run(a: argparse.Namespace) -> int:
@@ -20,11 +45,12 @@ def cmd_run(a: argparse.Namespace) -> int:
 
     out = pathlib.Path(a.out or pathlib.Path("runs") / pathlib.Path(a.level).stem)
     overrides = _overrides(a.set or [])
+    _limits(a)
     opts = RunOptions(
         out=out, frames=a.frames, arch=a.arch, ply=a.ply, frames_every=a.frames_every or 0, video=a.video,
         gif=a.gif, width=a.width, height=a.height, progress=not a.quiet, overrides=overrides,
         follow=[n.strip() for n in a.follow.split(",") if n.strip()] if a.follow else None,
-        follow_distance=a.follow_distance,
+        follow_distance=a.follow_distance, overwrite=a.overwrite,
     )
     code, summary = run_level(a.level, opts)
     if summary.get("status") == "invalid":
@@ -57,6 +83,7 @@ def cmd_check(a: argparse.Namespace) -> int:
 
     import sandbox.maneuvers  # noqa: F401
 
+    _limits(a)
     code = 0
     for path in a.levels:
         try:
@@ -66,6 +93,9 @@ def cmd_check(a: argparse.Namespace) -> int:
                 print(dump_level(level))
         except (LevelError, FileNotFoundError) as exc:
             print(exc, file=sys.stderr)
+            code = 2
+        except RecursionError:
+            print(f"{path}:1:1: <root>: the level is nested too deeply", file=sys.stderr)
             code = 2
     return code
 
@@ -141,8 +171,15 @@ def cmd_sweep(a: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sandbox", description="Geodesic Control sandbox for ropes and cloth")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", help="show the Python traceback of an internal error")
+    limits = argparse.ArgumentParser(add_help=False)
+    limits.add_argument("--limit", action="append", metavar="KEY=N",
+                        help="raise a resource limit: particles (1e6), steps (frames x substeps, 1e8), memory_gb (8)")
+    limits.add_argument("--allow-dir", action="append", metavar="DIR",
+                        help="also read mesh files from DIR (by default only from the level's folder and below)")
     sub = p.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("run", help="run a level headless and write its outputs")
+    r = sub.add_parser("run", help="run a level headless and write its outputs", parents=[common, limits])
     r.add_argument("level")
     r.add_argument("--out", help="output folder (default runs/<level>)")
     r.add_argument("--frames", type=int, help="frames to run (default: the level's sim.frames)")
@@ -159,23 +196,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--follow-distance", type=float, metavar="M",
                    help="m from the followed knot to the camera (default: the level camera's distance, or 0.4)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run in --out")
     r.set_defaults(fn=cmd_run)
-    pl = sub.add_parser("play", help="open an interactive window (needs a display and Vulkan)")
+    pl = sub.add_parser("play", help="open an interactive window (needs a display and Vulkan)", parents=[common])
     pl.add_argument("level")
     pl.add_argument("--arch", choices=ARCHES, default="auto")
     pl.set_defaults(fn=cmd_play)
-    c = sub.add_parser("check", help="validate level files")
+    c = sub.add_parser("check", help="validate level files", parents=[common, limits])
     c.add_argument("levels", nargs="+")
     c.add_argument("--dump", action="store_true", help="print the level back as YAML")
     c.set_defaults(fn=cmd_check)
-    b = sub.add_parser("bench", help="time levels headless against their budgets and a baseline")
+    b = sub.add_parser("bench", help="time levels headless against their budgets and a baseline", parents=[common])
     b.add_argument("levels", nargs="*")
     b.add_argument("--frames", type=int, default=60)
     b.add_argument("--baseline", help="JSON baseline to compare with")
     b.add_argument("--save", help="write results as a new baseline JSON")
     b.add_argument("--arch", choices=ARCHES, default="cpu")
     b.set_defaults(fn=cmd_bench)
-    sw = sub.add_parser("sweep", help="run levels under many perturbations and report their pass rates")
+    sw = sub.add_parser("sweep", help="run levels under many perturbations and report their pass rates",
+                        parents=[common])
     sw.add_argument("levels", nargs="*")
     sw.add_argument("--out", default="runs/sweep", help="sweep folder (default runs/sweep); a second run of the "
                                                        "same sweep goes on where it stopped")
@@ -203,11 +242,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Exit codes: 0 success, 1 a criterion failed, 2 invalid input (one line on stderr), 3 the run became
+    unstable or failed (an internal error: one line, the traceback with --debug), 130 interrupted."""
     args = build_parser().parse_args(argv)
     try:
         return int(args.fn(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except UsageError as exc:
+        print(f"sandbox {args.cmd}: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:
+        if getattr(args, "debug", False):
+            raise
+        print(f"sandbox {args.cmd}: internal error: {type(exc).__name__}: {' '.join(str(exc).split())[:500]} "
+              "(--debug shows the traceback)", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":

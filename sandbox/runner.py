@@ -19,8 +19,14 @@ import traceback
 
 import numpy as np
 
-from sandbox import runtime
-from sandbox.io.outputs import MetricsLog, write_json_atomic, write_meshes, write_state
+from sandbox.io.outputs import (
+    SUMMARY_RESERVE,
+    MetricsLog,
+    write_json_atomic,
+    write_json_in_place,
+    write_meshes,
+    write_state,
+)
 
 WARMUP_FRAMES = 3  # JIT compilation happens in the first frames; kept out of timings
 EXIT_OK, EXIT_CRITERIA, EXIT_INVALID, EXIT_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -44,6 +50,38 @@ class RunOptions:
     overrides: dict | None = None
     follow: list[str] | None = None  # ropes whose knot the frames' camera follows (over the level's camera)
     follow_distance: float | None = None  # m from the knot to the camera
+    overwrite: bool = False  # replace the outputs of an earlier run in ``out`` (else such a folder is refused)
+
+
+OUTPUTS = ("summary.json", "metrics.jsonl", "state.npz", "frames", "meshes", "anim.mp4", "anim.gif", "sheet.png")
+"""What a run writes into its folder: a folder holding any of them holds another run's outputs."""
+
+
+def _prepare_out(out: pathlib.Path, overwrite: bool) -> str | None:
+    """Make ``out`` ready for a run; what is wrong with it (None if nothing).
+
+    A folder that holds another run's outputs is refused unless ``overwrite``,
+    which removes those outputs first (other files stay).
+    """
+    import shutil
+
+    if out.exists() and not out.is_dir():
+        return f"--out {out}: exists and is not a folder"
+    old = [name for name in OUTPUTS if (out / name).exists()]
+    if old and not overwrite:
+        return (f"--out {out}: holds the outputs of another run ({', '.join(old)}); give --overwrite to replace "
+                "them, or another folder")
+    try:
+        for name in old:
+            path = out / name
+            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        return f"--out {out}: cannot write there ({exc.strerror or exc})"
+    return None
 
 
 def _stats(ms: list[float]) -> dict:
@@ -53,13 +91,16 @@ def _stats(ms: list[float]) -> dict:
     return {"p50": float(np.median(a)), "p95": float(np.percentile(a, 95)), "max": float(a.max()), "n": len(a)}
 
 
+STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+
 @contextlib.contextmanager
 def _deferred_sigint():
-    """Ctrl-C stops the run at the next frame boundary (a second Ctrl-C at once).
+    """Ctrl-C, SIGTERM and SIGHUP stop the run at the next frame boundary (a second one at once).
 
-    Yields a dict whose ``"stop"`` becomes True on the first Ctrl-C.
+    Yields a dict whose ``"stop"`` becomes the signal's name on the first one.
     """
-    flag = {"stop": False}
+    flag: dict = {"stop": None}
     if threading.current_thread() is not threading.main_thread():
         yield flag
         return
@@ -67,13 +108,14 @@ def _deferred_sigint():
     def handler(signum, frame):
         if flag["stop"]:
             raise KeyboardInterrupt
-        flag["stop"] = True
+        flag["stop"] = signal.Signals(signum).name
 
-    old = signal.signal(signal.SIGINT, handler)
+    old = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
     try:
         yield flag
     finally:
-        signal.signal(signal.SIGINT, old)
+        for sig, h in old.items():
+            signal.signal(sig, h)
 
 
 def _follow_problem(level, opts: RunOptions) -> str | None:
@@ -109,7 +151,9 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         return EXIT_INVALID, {"status": "invalid", "errors": problem}
 
     out = pathlib.Path(opts.out)
-    out.mkdir(parents=True, exist_ok=True)
+    problem = _prepare_out(out, opts.overwrite)
+    if problem:
+        return EXIT_INVALID, {"status": "invalid", "errors": problem}
     summary: dict = {
         "level": level.name,
         "path": str(path),
@@ -120,14 +164,18 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         "machine": {"python": platform.python_version(), "platform": platform.platform(),
                     "processor": platform.processor() or platform.machine()},
     }
-    write_json_atomic(out / "summary.json", summary)
-    log = MetricsLog(out / "metrics.jsonl")
+    try:
+        write_json_atomic(out / "summary.json", summary, reserve=SUMMARY_RESERVE)
+        log = MetricsLog(out / "metrics.jsonl")
+    except OSError as exc:
+        return EXIT_INVALID, {"status": "invalid", "errors": f"--out {out}: cannot write there ({exc.strerror or exc})"}
     world = None
     recorder = None
     frame_ms: list[float] = []
     systems: dict[str, list[float]] = {}
     stages: dict[str, list[float]] = {}
     code = EXIT_ERROR
+    sigint_name: list = [None]
     try:
         from sandbox.api import Sandbox
 
@@ -135,6 +183,8 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         world = sim.world
         world.profile_every = opts.profile_every
         summary["arch"] = world.arch
+        from sandbox import runtime  # Taichi is imported once the level and --out are known to be good
+
         summary["fast_compile"] = runtime.fast_compile()  # frame times depend on it (docs/how-it-works.md, "Compile time")
         summary["particles"] = world.model.n
         summary["constraints"] = world.model.m
@@ -154,21 +204,28 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
             bar = tqdm(total=n, desc=level.name, unit="frame", leave=False, disable=None)  # None: off when stderr is not a terminal
         last_state = world.fsm.state if world.fsm else ""
         with _deferred_sigint() as sigint:
-            _frames(sim, world, n, log, summary, recorder, bar, frame_ms, systems, stages, last_state, sigint)
+            try:
+                _frames(sim, world, n, log, summary, recorder, bar, frame_ms, systems, stages, last_state, sigint)
+            finally:
+                sigint_name[0] = sigint["stop"]
         if bar is not None:
             bar.close()
         summary["status"] = "completed"
         code = EXIT_OK
     except KeyboardInterrupt:
         summary["status"] = "interrupted"
-        summary["message"] = "interrupted by the user (Ctrl-C); outputs cover the frames run"
+        how = sigint_name[0] or "SIGINT"
+        summary["message"] = f"interrupted ({how}); outputs cover the frames run, state.npz the last of them"
         code = EXIT_INTERRUPTED
     except Exception as exc:  # reported in the summary, never lost
         from sandbox.world import SimulationUnstable
 
         summary["status"] = "unstable" if isinstance(exc, SimulationUnstable) else "error"
-        summary["message"] = f"{type(exc).__name__}: {exc}"
-        if not isinstance(exc, SimulationUnstable):
+        if isinstance(exc, OSError) and exc.errno is not None:
+            summary["message"] = f"an output could not be written: {exc.strerror} ({getattr(exc, 'filename', '')})"
+        else:
+            summary["message"] = f"{type(exc).__name__}: {exc}"
+        if not isinstance(exc, (SimulationUnstable, OSError)):
             summary["traceback"] = traceback.format_exc()
         code = EXIT_ERROR
     finally:
@@ -205,7 +262,17 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
             summary["criteria"] = evaluate(level.success, world)
             summary["success"] = all(c["ok"] for c in summary["criteria"])
             code = EXIT_OK if summary["success"] else EXIT_CRITERIA
-    write_json_atomic(out / "summary.json", summary)
+    try:
+        write_json_atomic(out / "summary.json", summary)
+    except OSError as exc:  # a full disk: the final summary goes into the place the first one kept
+        summary.pop("traceback", None)
+        summary["output_error"] = f"summary.json written in place: {exc.strerror or exc}"
+        try:
+            write_json_in_place(out / "summary.json", summary)
+        except OSError:
+            pass
+        if code == EXIT_OK or code == EXIT_CRITERIA:
+            code = EXIT_ERROR
     if world is not None:
         world.close()  # frees its field tree: a process may run many levels (tools/sweep_level.py)
     return code, summary

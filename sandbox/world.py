@@ -29,6 +29,10 @@ def _rod_frame(direction: np.ndarray, e2_prev: np.ndarray | None):
     return e1, e2, np.cross(e1, e2)
 
 
+STRAIN_BLOWUP = 4.0
+"""Relative stretch of a rod or cloth edge (a length five times its rest) that makes a frame count as blown up."""
+
+
 class SimulationUnstable(RuntimeError):
     """The step kept producing NaN or exploding velocities after every retry."""
 
@@ -118,6 +122,13 @@ class World:
         self._finest = min([r.rod_length for r in self.data.ropes]
                            + [min(c.spacing) for c in self.data.cloths] or [np.inf])
         self._gravity = float(np.linalg.norm(scene.gravity))
+        # Deepest a particle's centre may sink into an object or the ground before the frame counts as blown up:
+        # a rope's radius, a cloth's thickness (m).
+        self._deepest = np.zeros(self.model.n)
+        for r in self.data.ropes:
+            self._deepest[r.start:r.end] = r.radius
+        for c in self.data.cloths:
+            self._deepest[c.start:c.end] = c.thickness
         self.systems_ms: dict[str, float] = {}
         self.stage_ms: dict[str, float] = {}
         self.profile_every = 0  # frames; 0 = never run the per-pass profile
@@ -290,7 +301,8 @@ class World:
             self._physics(substeps, profile)
             m = self.solver.measure()
             vmax = float(np.sqrt((self.state.v.to_numpy() ** 2).sum(axis=1).max())) if not m["nan"] else np.inf
-            if not m["nan"] and vmax < self.explode_speed:
+            blown = m["nan"] or vmax >= self.explode_speed or self._blown_up(m)
+            if not blown:
                 self.frame += 1
                 self.time = self.frame * self.dt
                 m["vmax"] = vmax
@@ -306,7 +318,8 @@ class World:
                 self.retries_total += 1
             substeps *= 2
         raise SimulationUnstable(
-            f"frame {self.frame}: NaN or speed above {self.explode_speed:g} m/s after "
+            f"frame {self.frame}: NaN, speed above {self.explode_speed:g} m/s, a rod or edge stretched past "
+            f"{1 + STRAIN_BLOWUP:g}x its rest length or a particle sunk deeper than its radius or thickness after "
             f"{self.max_retries} retries (up to {substeps // 2} substeps); last good state kept"
         )
 
@@ -363,6 +376,19 @@ class World:
         if self.stage_ms and self.profile_every and (self.frame - 1) % self.profile_every == 0:
             row["stage_ms"] = {k: round(v, 3) for k, v in self.stage_ms.items()}
         return row
+
+    def _blown_up(self, m: dict) -> bool:
+        """A strain or penetration blow-up: a stretch past ``STRAIN_BLOWUP``, or a particle's centre deeper in an
+        object or the ground than its rope's radius or its cloth's thickness."""
+        if len(m["strain"]) and float(np.max(m["strain"])) > STRAIN_BLOWUP:
+            return True
+        depth = m["depth"][: len(self._deepest)]
+        deep = depth > self._deepest
+        if not deep.any():
+            return False
+        deep[self.data.pins] = False  # a hand may hold a particle where it likes
+        deep[self.control.driven_indices] = False
+        return bool(deep.any())
 
     # -------------------------------------------------------------- metrics
     def _frame_metrics(self, m: dict) -> dict:

@@ -254,6 +254,9 @@ def test_missing_mesh_file(tmp_path: pathlib.Path):
     assert "not found" in err.message
     (tmp_path / "meshes").mkdir()
     (tmp_path / "meshes" / "cupid.obj").write_text("v 0 0 0\n")
+    with pytest.raises(LevelError, match="holds no triangles"):  # the file is read at load
+        load_level(level_file)
+    (tmp_path / "meshes" / "cupid.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
     assert load_level(level_file).scene.objects[0].params == {"path": "meshes/cupid.obj"}
 
 

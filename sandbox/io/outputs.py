@@ -36,25 +36,80 @@ def _clean(o: Any):
     return o
 
 
-def write_json_atomic(path: pathlib.Path, data: dict) -> None:
-    """Write JSON through a temporary file and a rename."""
+SUMMARY_RESERVE = 256 * 1024
+"""Bytes the first summary.json of a run takes (padded with spaces): the final one can be written
+into that place when the disk is full."""
+
+
+def _json_text(data: dict) -> str:
+    return json.dumps(_clean(data), indent=2, default=_default)
+
+
+def write_json_atomic(path: pathlib.Path, data: dict, *, reserve: int = 0) -> None:
+    """Write JSON through a temporary file and a rename, padded with spaces to ``reserve`` bytes."""
+    text = _json_text(data)
+    text += " " * max(0, reserve - len(text.encode()) - 1) + "\n"
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(_clean(data), indent=2, default=_default))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_json_in_place(path: pathlib.Path, data: dict) -> None:
+    """Overwrite ``path`` in place with JSON no longer than it (needs no free space); what does not fit is cut.
+
+    Bulky entries (FSM events, per-pass timings) go first, then all but the
+    status and its message.
+
+    Raises:
+        OSError: the file cannot be written even so.
+    """
+    size = path.stat().st_size
+    slim = {k: v for k, v in data.items() if k not in ("fsm", "stage_ms_per_frame", "systems_ms", "traceback")}
+    least = {k: data[k] for k in ("level", "status", "success", "frames_run", "message", "output_error") if k in data}
+    for candidate in (data, slim, least):
+        raw = _json_text(candidate).encode()
+        if len(raw) < size:
+            with open(path, "r+b") as f:
+                f.write(raw + b" " * (size - len(raw) - 1) + b"\n")
+                f.flush()
+                os.fsync(f.fileno())
+            return
+    raise OSError(28, "no room for the summary", str(path))
 
 
 class MetricsLog:
-    """metrics.jsonl: one JSON object per frame, flushed as it goes."""
+    """metrics.jsonl: one JSON object per frame, flushed as it goes; never a partial line.
+
+    A line that cannot be written whole (a full disk) is cut back off the
+    file before the error goes on.
+    """
 
     def __init__(self, path: pathlib.Path) -> None:
-        self.file = open(path, "w", encoding="utf-8")
+        self.file = open(path, "wb")
 
     def write(self, row: dict) -> None:
-        self.file.write(json.dumps(_clean(row), default=_default) + "\n")
-        self.file.flush()
+        line = (json.dumps(_clean(row), default=_default) + "\n").encode()
+        start = self.file.tell()
+        try:
+            self.file.write(line)
+            self.file.flush()
+        except OSError:
+            try:
+                self.file.seek(start)
+                self.file.truncate(start)
+            except OSError:
+                os.ftruncate(self.file.fileno(), start)
+            raise
 
     def close(self) -> None:
-        self.file.close()
+        try:
+            self.file.close()
+        except OSError:  # what was buffered past the last whole line was cut already
+            pass
 
 
 def write_state(path: pathlib.Path, world) -> None:

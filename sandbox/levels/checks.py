@@ -131,9 +131,21 @@ def _value_error(value: Any, default: Any) -> str | None:
     return None
 
 
-def check_objects(data: Any, base_dir: pathlib.Path) -> list[Finding]:
-    """Shape parameters must be known to the shape's builder; mesh files must exist."""
+MESH_FILE_BYTES = 200_000_000
+"""Largest mesh file read."""
+
+
+def check_objects(data: Any, base_dir: pathlib.Path, extra_dirs: Iterable[pathlib.Path] = ()) -> list[Finding]:
+    """Shape parameters must be known to the shape's builder, lengths finite and at most ``MAX_COORD``;
+    the object must build (mesh files are read: triangles, finite coordinates, a size bound) and a
+    mesh file must lie in the level's folder or one of ``extra_dirs``."""
+    from sandbox.levels.schema import MAX_COORD  # noqa: PLC0415
+
     table = shapes()
+    try:
+        from sandbox.objects.builders import LENGTH_PARAMS, build_mesh  # noqa: PLC0415
+    except ImportError:
+        LENGTH_PARAMS, build_mesh = {}, None
     out = []
     for i, item in _items(data, "scene", "objects"):
         shape, params = item.get("shape"), item.get("params", {})
@@ -141,6 +153,7 @@ def check_objects(data: Any, base_dir: pathlib.Path) -> list[Finding]:
             continue  # reported by the schema
         base = ("scene", "objects", i, "params")
         allowed = table[shape]
+        bad = False
         for key, value in params.items():
             if key not in allowed:
                 out.append(Finding(
@@ -149,22 +162,88 @@ def check_objects(data: Any, base_dir: pathlib.Path) -> list[Finding]:
                     f"{', '.join(allowed) or '(none)'}",
                     key=True,
                 ))
+                bad = True
                 continue
             problem = _value_error(value, allowed[key])
+            if problem is None and key in LENGTH_PARAMS.get(shape, ()):
+                vals = value if isinstance(value, list) else [value]
+                if not all(isinstance(v, (int, float)) and 0 < v <= MAX_COORD for v in vals):
+                    problem = f"is out of range ({value!r}); allowed lengths in (0, {MAX_COORD:g}] m"
             if problem:
                 out.append(Finding(base + (key,), f"parameter {key!r} {problem}"))
+                bad = True
         if shape == "mesh":
             mesh = params.get("path")
             if mesh is None:
                 out.append(Finding(base, "a 'mesh' object needs the parameter 'path'"))
-            elif not isinstance(mesh, str):
+                continue
+            if not isinstance(mesh, str):
                 out.append(Finding(base + ("path",), f"'path' should be a string, got {mesh!r}"))
-            elif not (base_dir / mesh).is_file():
-                out.append(Finding(
-                    base + ("path",),
-                    f"mesh file {mesh!r} not found (looked for {base_dir / mesh}; paths are "
-                    "relative to the level file's folder)",
-                ))
+                continue
+            problem = _mesh_file_problem(mesh, base_dir, extra_dirs)
+            if problem:
+                out.append(Finding(base + ("path",), problem))
+                continue
+        if bad or build_mesh is None:
+            continue
+        try:
+            built = build_mesh(shape, params, base_dir=base_dir)
+        except (ValueError, FileNotFoundError) as exc:
+            out.append(Finding(base, f"object {item.get('name')!r} cannot be built: {exc}"))
+            continue
+        import numpy as np  # noqa: PLC0415
+
+        v = np.asarray(built.vertices)
+        if len(built.faces) == 0 or not np.isfinite(v).all():
+            out.append(Finding(base, f"object {item.get('name')!r}: its mesh has no triangles or non-finite "
+                                     "coordinates"))
+        elif np.ptp(v, axis=0).max() > 2 * MAX_COORD:
+            out.append(Finding(base, f"object {item.get('name')!r} is {np.ptp(v, axis=0).max():g} m across; "
+                                     f"allowed at most {2 * MAX_COORD:g} m (a mesh in mm? set params.scale)"))
+    return out
+
+
+def _mesh_file_problem(mesh: str, base_dir: pathlib.Path, extra_dirs: Iterable[pathlib.Path]) -> str | None:
+    path = (base_dir / mesh).resolve()
+    roots = [base_dir.resolve(), *[pathlib.Path(d).resolve() for d in extra_dirs]]
+    if not any(path == r or r in path.parents for r in roots):
+        return (f"mesh file {mesh!r} lies outside the level's folder ({base_dir.resolve()}); mesh files must "
+                "be in it or below it, or in a folder allowed with --allow-dir DIR (or SANDBOX_MESH_DIRS)")
+    if not path.is_file():
+        return (f"mesh file {mesh!r} not found (looked for {path}; paths are relative to the level file's "
+                "folder)")
+    size = path.stat().st_size
+    if size == 0:
+        return f"mesh file {mesh!r} is empty"
+    if size > MESH_FILE_BYTES:
+        return f"mesh file {mesh!r} is {size} bytes; allowed at most {MESH_FILE_BYTES}"
+    return None
+
+
+def check_resources(data: Any, limits) -> list[Finding]:
+    """Particles, frames x substeps and estimated memory within ``limits`` (a ``limits.Limits``)."""
+    from sandbox.levels.limits import BYTES_PER_PARTICLE, particle_count  # noqa: PLC0415
+
+    out = []
+    how = "raise it with --limit {0}=N (or SANDBOX_LIMITS='{0}=N')"
+    n = particle_count(data)
+    if n is not None and n > limits.particles:
+        out.append(Finding(("scene",), f"the level asks for {n} particles; the limit is {limits.particles}: "
+                                       f"use fewer (a longer rod_length, a coarser resolution) or "
+                                       + how.format("particles")))
+    if n is not None and n * BYTES_PER_PARTICLE > limits.memory_gb * 2**30:
+        out.append(Finding(("scene",), f"the level's fields would take about {n * BYTES_PER_PARTICLE / 2**30:.1f} "
+                                       f"GiB; the limit is {limits.memory_gb:g} GiB: " + how.format("memory_gb")))
+    sim = data.get("sim") if isinstance(data, dict) else None
+    sim = sim if isinstance(sim, dict) else {}
+    try:
+        sub = max(int(sim.get("substeps", 10)), int(sim.get("max_substeps") or 0))
+        steps = int(sim.get("frames", 240)) * sub
+    except (TypeError, ValueError):
+        steps = None
+    if steps is not None and steps > limits.steps:
+        out.append(Finding(("sim",), f"frames x substeps is {steps}; the limit is {limits.steps}: "
+                                     + how.format("steps")))
     return out
 
 

@@ -77,6 +77,8 @@ def format_path(path: tuple[Any, ...]) -> str:
 def syntax_issue(exc: Any, source: str) -> LevelIssue:
     """The issue for a YAML syntax error (a ``yaml.MarkedYAMLError``), at its line and column."""
     mark = exc.problem_mark or exc.context_mark
-    line, col = (mark.line + 1, mark.column + 1) if mark else (0, 0)
+    line, col = (mark.line + 1, mark.column + 1) if mark else (1, 1)
     problem = " ".join(p for p in (exc.context, exc.problem) if p)
-    return LevelIssue(source, line, col, "", f"YAML syntax: {problem}")
+    from sandbox.levels.yamlio import LimitError  # noqa: PLC0415
+
+    return LevelIssue(source, line, col, "", problem if isinstance(exc, LimitError) else f"YAML syntax: {problem}")

@@ -108,14 +108,30 @@ def check_level(
 ) -> LevelCheck:
     """Check a level file without raising; see ``load_level``."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        issue = LevelIssue(str(path), 0, 0, "", f"cannot read the level: {exc.strerror or exc}")
-        return LevelCheck(None, [issue], [])
+    text, problem, line = read_text(path)
+    if problem:
+        return LevelCheck(None, [LevelIssue(str(path), line, 1 if line else 0, "", problem)], [])
     return check_level_text(
         text, source=str(path), base_dir=path.parent, overrides=overrides, registry=registry
     )
+
+
+def read_text(path: pathlib.Path) -> tuple[str, str | None, int]:
+    """A level or sweep file's text, or what is wrong with it (not a file, too big, not UTF-8) and on which line."""
+    try:
+        size = path.stat().st_size
+        if not path.is_file():
+            return "", "not a file", 0
+        if size > yamlio.MAX_BYTES:
+            return "", f"the file is {size} bytes; allowed at most {yamlio.MAX_BYTES}", 1
+        raw = path.read_bytes()
+    except OSError as exc:
+        return "", f"cannot read it: {exc.strerror or exc}", 0
+    try:
+        return raw.decode("utf-8"), None, 0
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        return "", f"not UTF-8 text: byte 0x{raw[exc.start]:02x} cannot be read; save the file as UTF-8", line
 
 
 def check_level_text(
@@ -158,7 +174,13 @@ def _validate(
     findings += checks.check_names(data)
     findings += checks.check_camera(data)
     findings += checks.check_sim(data)
-    findings += checks.check_objects(data, base_dir)
+    from sandbox.levels.limits import Limits, mesh_dirs  # noqa: PLC0415
+
+    findings += checks.check_objects(data, base_dir, mesh_dirs())
+    try:
+        findings += checks.check_resources(data, Limits.from_env())
+    except ValueError as exc:
+        findings.append(Finding((), f"SANDBOX_LIMITS: {exc}"))
 
     macros: dict[str, Macro] = {}
     unchecked: set[str] = set()

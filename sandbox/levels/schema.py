@@ -92,11 +92,19 @@ def between(
     return Annotated[base, AfterValidator(check)]
 
 
-Positive = between(float, 0, lo_open=True)
-NonNegative = between(float, 0)
+MAX_COORD = 1.0e3
+"""Largest |coordinate| (m), length (m), |angle| (degrees) or |gravity component| (m/s^2) a level may
+give: positions are float32, which keeps 0.06 mm at 1 km."""
+MAX_VALUE = 1.0e6
+"""Largest other quantity (masses, compliances, times in s, budgets in ms)."""
+
+Positive = between(float, 0, MAX_VALUE, lo_open=True)
+NonNegative = between(float, 0, MAX_VALUE)
+Length = between(float, 0, MAX_COORD, lo_open=True)
+Coord = between(float, -MAX_COORD, MAX_COORD)
 Unit = between(float, 0, 1)
 Friction = between(float, 0, 2)
-Vec3 = tuple[Float, Float, Float]
+Vec3 = tuple[Coord, Coord, Coord]
 Color = tuple[Unit, Unit, Unit]
 
 
@@ -177,7 +185,7 @@ class Ground(_Model):
         friction: Coulomb coefficient.
     """
 
-    height: Float = 0.0
+    height: Coord = 0.0
     friction: Friction = 0.5
 
 
@@ -198,7 +206,7 @@ class Camera(_Model):
     look_at: Vec3
     fov: between(float, 1, 170, lo_open=True, hi_open=True) = 45.0
     follow: list[Name] = []
-    distance: Positive | None = None
+    distance: Length | None = None
     smoothing: NonNegative = 0.5
 
 
@@ -270,11 +278,11 @@ class ClothSpec(_Model):
 
     name: Name
     resolution: tuple[between(int, 2, 1024), between(int, 2, 1024)]
-    size: tuple[Positive, Positive]
+    size: tuple[Length, Length]
     center: Vec3
-    yaw: Float = 0.0
+    yaw: Coord = 0.0
     mass: Positive = 0.5
-    thickness: Positive | None = None
+    thickness: Length | None = None
     stretch_compliance: NonNegative = 0.0
     shear_compliance: NonNegative = 1e-6
     bend_compliance: NonNegative = 1e-3
@@ -314,8 +322,8 @@ class RopeSpec(_Model):
     name: Name
     points: Annotated[list[Vec3], Field(min_length=2)]
     segments: between(int, 1, 4096) | None = None
-    rod_length: Positive | None = None
-    radius: Positive
+    rod_length: Length | None = None
+    radius: Length
     mass: Positive = 0.05
     stretch_compliance: NonNegative = 0.0
     bend_compliance: NonNegative = 1e-2

@@ -16,6 +16,11 @@ from typing import Any
 
 import yaml
 
+MAX_BYTES = 2_000_000
+"""Largest YAML text read (a level or a sweep file is a few kB)."""
+MAX_NODES = 200_000
+"""Most nodes a document may expand to, aliases counted at each use (an alias bomb stops here)."""
+
 Path = tuple[Any, ...]
 """A position in the document: mapping keys and sequence indices from the root."""
 
@@ -113,6 +118,10 @@ class Document:
         return (), Mark(1, 1)
 
 
+class LimitError(yaml.MarkedYAMLError):
+    """A document past ``MAX_BYTES`` or ``MAX_NODES``, or nested too deeply; says which and where."""
+
+
 def _mark(node: yaml.Node) -> Mark:
     return Mark(node.start_mark.line + 1, node.start_mark.column + 1)
 
@@ -121,27 +130,40 @@ def parse(text: str) -> Document:
     """Parse one YAML document, recording node positions.
 
     Raises:
-        yaml.MarkedYAMLError: on a syntax error.
+        yaml.MarkedYAMLError: on a syntax error; ``LimitError`` (one of them)
+            for a text of more than ``MAX_BYTES`` characters, a document that
+            expands to more than ``MAX_NODES`` nodes, or one nested too deeply.
     """
+    if len(text) > MAX_BYTES:
+        raise LimitError(problem=f"the text is {len(text)} characters long; allowed at most {MAX_BYTES}")
     loader = _Loader(text)
     try:
         node = loader.get_single_node()
         doc = Document(data=None)
         if node is not None:
-            doc.data = _build(loader, node, (), doc)
+            doc.data = _build(loader, node, (), doc, [0])
         return doc
+    except RecursionError:
+        raise LimitError(problem="the document is nested too deeply") from None
     finally:
         loader.dispose()
 
 
-def _build(loader: _Loader, node: yaml.Node, path: Path, doc: Document) -> Any:
+def _build(loader: _Loader, node: yaml.Node, path: Path, doc: Document, count: list[int]) -> Any:
+    count[0] += 1
+    if count[0] > MAX_NODES:
+        raise LimitError(problem=f"the document expands to more than {MAX_NODES} nodes (aliases are counted "
+                                 "at each use); allowed at most that many", problem_mark=node.start_mark)
     doc.values[path] = _mark(node)
     if isinstance(node, yaml.SequenceNode):
-        return [_build(loader, child, path + (i,), doc) for i, child in enumerate(node.value)]
+        return [_build(loader, child, path + (i,), doc, count) for i, child in enumerate(node.value)]
     if isinstance(node, yaml.MappingNode):
         loader.flatten_mapping(node)
         out: dict[Any, Any] = {}
         for key_node, value_node in node.value:
+            if not isinstance(key_node, yaml.ScalarNode):
+                doc.problems.append((path, _mark(key_node), "mapping keys must be scalars"))
+                continue
             key = loader.construct_object(key_node, deep=True)
             if not isinstance(key, Hashable) or isinstance(key, (list, dict)):
                 doc.problems.append((path, _mark(key_node), "mapping keys must be scalars"))
@@ -151,7 +173,7 @@ def _build(loader: _Loader, node: yaml.Node, path: Path, doc: Document) -> Any:
                     (path + (key,), _mark(key_node), f"duplicate key {key!r}")
                 )
             doc.keys[path + (key,)] = _mark(key_node)
-            out[key] = _build(loader, value_node, path + (key,), doc)
+            out[key] = _build(loader, value_node, path + (key,), doc, count)
         return out
     return loader.construct_object(node, deep=True)
 

@@ -24,9 +24,9 @@ class Status(str, enum.Enum):
 
 
 class Params(pydantic.BaseModel):
-    """Base of every maneuver's parameters: unknown keys are errors."""
+    """Base of every maneuver's parameters: unknown keys are errors, numbers are finite."""
 
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Maneuver:

@@ -7,12 +7,13 @@ Sites are named per body (see ``World.site_particles``): rope ``start``,
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Union
+from typing import Annotated, Any, Literal, Union
 
 import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
+from sandbox.objects.sites import SITE_NAMES
 
 Vec3 = tuple[float, float, float]
 Site = Union[str, int, tuple[int, int]]
@@ -27,7 +28,7 @@ class Target(Params):
 
     point: Vec3 | None = None
     object: str | None = None
-    site: str = "top"
+    site: Literal[SITE_NAMES] = "top"
     offset: Vec3 = (0.0, 0.0, 0.0)
 
     @pydantic.model_validator(mode="after")
@@ -65,8 +66,8 @@ TargetLike = Annotated[Target, pydantic.BeforeValidator(_as_target)]
 
 
 class WaitParams(Params):
-    ticks: Annotated[int, pydantic.Field(ge=0)] = 0
-    seconds: Annotated[float, pydantic.Field(ge=0)] = 0.0
+    ticks: Annotated[int, pydantic.Field(ge=0, le=10**9)] = 0
+    seconds: Annotated[float, pydantic.Field(ge=0, le=1e6)] = 0.0
 
 
 @register

@@ -49,6 +49,20 @@ SHAPES: dict[str, dict[str, Any]] = {
     "mesh": {"path": None, "scale": 1.0},
 }
 
+LENGTH_PARAMS: dict[str, tuple[str, ...]] = {
+    "box": ("size",),
+    "sphere": ("radius",),
+    "cylinder": ("radius", "height"),
+    "capsule": ("radius", "height"),
+    "torus": ("major_radius", "minor_radius"),
+    "wine_bottle": ("height", "radius", "neck_radius"),
+    "basket": ("radius", "height", "wall", "handle_radius", "handle_height"),
+    "jeep": ("length", "width", "height"),
+    "statue": ("height",),
+    "mesh": ("scale",),
+}
+"""Shape parameters that are lengths (m; a mesh's ``scale`` multiplies its file's lengths)."""
+
 ANALYTIC_SHAPES = ("box", "sphere", "cylinder", "capsule", "torus")
 
 _Y_UP = trimesh.transformations.rotation_matrix(-math.pi / 2.0, [1.0, 0.0, 0.0])

@@ -24,24 +24,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sandbox.objects.builders import SHAPES, build_mesh
+from sandbox.objects.builders import LENGTH_PARAMS, SHAPES, build_mesh
 
 SCENE = "scene"
 """The placement target that moves every body of the level and its camera."""
-
-LENGTH_PARAMS: dict[str, tuple[str, ...]] = {
-    "box": ("size",),
-    "sphere": ("radius",),
-    "cylinder": ("radius", "height"),
-    "capsule": ("radius", "height"),
-    "torus": ("major_radius", "minor_radius"),
-    "wine_bottle": ("height", "radius", "neck_radius"),
-    "basket": ("radius", "height", "wall", "handle_radius", "handle_height"),
-    "jeep": ("length", "width", "height"),
-    "statue": ("height",),
-    "mesh": ("scale",),
-}
-"""Shape parameters that are lengths (scaled when an object is resized)."""
 
 SWAP_SHAPES = tuple(s for s in SHAPES if s != "mesh")
 """Procedural shapes an object may be swapped for by name."""

@@ -255,11 +255,12 @@ def parse_sweep(text: str, *, source: str = "<string>", base_dir: pathlib.Path |
 
 def load_sweep(path: str | pathlib.Path) -> list[Axis]:
     """Axes of a sweep file (``parse_sweep``); ``mesh:`` paths are relative to its folder."""
+    from sandbox.levels.loader import read_text  # noqa: PLC0415
+
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SweepError([LevelIssue(str(path), 0, 0, "", f"cannot read the sweep file: {exc}")]) from None
+    text, problem, line = read_text(path)
+    if problem:
+        raise SweepError([LevelIssue(str(path), line, 1 if line else 0, "", problem)])
     return parse_sweep(text, source=str(path), base_dir=path.parent)
 
 
