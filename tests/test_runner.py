@@ -166,8 +166,10 @@ def test_bad_follow_exits_2_before_running(tmp_path, opts, message):
     assert not out.exists()
 
 
-def test_sigint_leaves_valid_outputs_and_exits_130(tmp_path):
-    """Ctrl-C during a run leaves status 'interrupted', a valid metrics.jsonl and state.npz, and exits with 130."""
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM", "SIGHUP"])
+def test_a_stop_signal_leaves_valid_outputs_and_exits_130(tmp_path, sig):
+    """Ctrl-C, SIGTERM or SIGHUP during a run leave status 'interrupted' (naming the signal), a valid
+    metrics.jsonl and state.npz, and exit with 130."""
     out = tmp_path / "int"
     proc = subprocess.Popen(_cmd(LEVEL, out, "--frames", "100000"), cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -179,7 +181,7 @@ def test_sigint_leaves_valid_outputs_and_exits_130(tmp_path):
                 break
             time.sleep(0.05)
         assert proc.poll() is None, proc.communicate()[1]
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(getattr(signal, sig))
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
@@ -187,7 +189,7 @@ def test_sigint_leaves_valid_outputs_and_exits_130(tmp_path):
             proc.wait()
     assert proc.returncode == 130, err
     s = _summary(out)
-    assert s["status"] == "interrupted" and s["message"]
+    assert s["status"] == "interrupted" and sig in s["message"]
     rows = _metrics(out)
     assert len(rows) == s["frames_run"] >= 5
     assert [r["frame"] for r in rows] == list(range(1, len(rows) + 1))

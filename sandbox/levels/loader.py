@@ -313,7 +313,8 @@ def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
         try:
             out[key.strip()] = yamlio.parse(text).data
         except yaml.YAMLError as exc:
-            raise ValueError(f"override {item!r}: the value is not valid YAML ({exc})") from exc
+            what = " ".join(p for p in (getattr(exc, "context", None), getattr(exc, "problem", None)) if p)
+            raise ValueError(f"override {item!r}: the value is not valid YAML ({what or exc})") from exc
     return out
 
 
