@@ -270,21 +270,23 @@ def test_interrupt_between_substeps_saves_a_whole_frame(tmp_path, monkeypatch):
 
 
 def test_unstable_run_exits_3(tmp_path):
-    """A run that blows up exits with 3 and leaves status 'unstable', its message and the last good state."""
+    """A run that blows up exits with 3 and leaves status 'unstable', its message and the last good state.
+
+    With no ground and 1000 m/s^2 the scene falls past 200 m/s in frame 12; no retry can help.
+    """
     out = tmp_path / "boom"
-    proc = _run(LEVEL, out, "--frames", "5", "--set", "scene.gravity=[0.0, -1.0e+9, 0.0]", "--set",
+    proc = _run(LEVEL, out, "--frames", "30", "--set", "scene.gravity=[0.0, -1000.0, 0.0]", "--set",
                 "scene.ground=false")
     assert proc.returncode == 3, proc.stderr
     s = _summary(out)
     assert s["status"] == "unstable" and s["success"] is False
     assert "SimulationUnstable" in s["message"] and "retries" in s["message"]
     assert "traceback" not in s and "criteria" not in s
-    assert s["frames_run"] == 0 and _metrics(out) == []
+    assert 5 <= s["frames_run"] < 30 and len(_metrics(out)) == s["frames_run"]
     assert "SimulationUnstable" in proc.stderr
     with np.load(out / "state.npz") as st:
-        assert int(st["frame"]) == 0
-        np.testing.assert_allclose(st["rope_cord"][:, 1], 0.3, atol=1e-6)      # the start state, untouched
-        np.testing.assert_allclose(st["cloth_sheet"][:, 1], 0.45, atol=1e-6)
+        assert int(st["frame"]) == s["frames_run"]  # the last good frame
+        assert np.isfinite(st["rope_cord"]).all() and np.isfinite(st["cloth_sheet"]).all()
 
 
 def test_in_process_runs_give_back_their_field_trees(tmp_path):

@@ -272,15 +272,19 @@ def test_sweep_killed_half_way_resumes_without_repeating_or_losing_a_run(tmp_pat
 
 def test_failing_and_overlong_runs_leave_error_rows_and_the_sweep_completes(tmp_path):
     """A run that blows up and one past the time limit each give a row with their error; reports are written."""
-    grid = _grid(tmp_path, "  scene.gravity: [[0, -9.81, 0], [0, -1.0e30, 0]]\n")
+    # Free of its pin and of the ground, at 1000 m/s^2 the rope passes 200 m/s in frame 12: unstable.
+    grid = _grid(tmp_path, "  scene.gravity: [[0, -9.81, 0], [0, -1000, 0]]\n  scene.ground: [false]\n"
+                           "  scene.ropes.0.pins: [[]]\n  sim.frames: [20]\n")
     res = _sweep(TINY, "--grid", grid, "--out", tmp_path / "a", "--workers", "2")
     assert res.returncode == 0, res.stderr
     rows = {r["scene.gravity"][1]: r for r in table.read(tmp_path / "a" / "sweep_tiny" / "runs.csv")[1]}
-    assert rows[-9.81]["status"] == "completed" and rows[-9.81]["success"] is True
-    bad = rows[-1e30]
-    assert bad["status"] == "unstable" and bad["exit_code"] == 3 and "NaN" in bad["error"] and bad["success"] is False
+    assert rows[-9.81]["status"] == "completed" and rows[-9.81]["ok:min_height(cord) >= 0.3"] is False
+    bad = rows[-1000]
+    assert bad["status"] == "unstable" and bad["exit_code"] == 3 and "200 m/s" in bad["error"]
+    assert bad["success"] is False and 5 <= bad["frames_run"] < 20
     rep = json.loads((tmp_path / "a" / "sweep_tiny" / "report.json").read_text())
-    assert rep["runs"] == 2 and rep["passed"] == 1 and rep["status"] == {"completed": 1, "unstable": 1}
+    assert rep["runs"] == 2 and rep["passed"] == 0 and rep["status"] == {"completed": 1, "unstable": 1}
+    assert rep["criteria"]["min_height(cord) >= 0.3"]["failed"] == 1
     for name in ("axes.png", "time_vs_margin.png"):
         assert (tmp_path / "a" / "sweep_tiny" / name).stat().st_size > 1000
     slow = _sweep(TINY, "--grid", _grid(tmp_path, "  compile: [full]\n"), "--out", tmp_path / "b", "--timeout", "0.3")

@@ -1,0 +1,60 @@
+"""Load and close a level over and over and watch resident memory: a host that reloads levels must not leak.
+
+Usage: python tools/leak_cycles.py [LEVEL] [--cycles 200] [--warmup 20] [--steps 1]
+Prints MB per cycle after the warm-up (the slope of resident memory) for
+load-and-close cycles with that many steps each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+from soak import rss_mb  # noqa: E402
+
+
+def cycles(level: str | pathlib.Path, n: int = 200, *, warmup: int = 20, steps: int = 1) -> dict:
+    """Resident memory after each of ``n`` load, ``steps`` frames, close cycles; the slope past ``warmup``."""
+    import gc
+
+    from sandbox.api import Sandbox
+
+    mem = []
+    for _ in range(n):
+        sim = Sandbox.from_level(level, arch="cpu")
+        for _ in range(steps):
+            sim.step()
+        sim.close()
+        del sim
+        gc.collect()
+        mem.append(rss_mb())
+    after = np.asarray(mem[warmup:])
+    slope = float(np.polyfit(np.arange(len(after)), after, 1)[0]) if len(after) >= 3 else None
+    return {"level": str(level), "cycles": n, "steps": steps, "warmup": warmup, "rss_mb_first": mem[0],
+            "rss_mb_last": mem[-1], "mb_per_cycle": slope}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    root = pathlib.Path(__file__).resolve().parents[1]
+    p.add_argument("level", nargs="?", default=str(root / "tests" / "data" / "levels" / "engine_small.yaml"))
+    p.add_argument("--cycles", type=int, default=200)
+    p.add_argument("--warmup", type=int, default=20)
+    p.add_argument("--steps", type=int, default=1)
+    a = p.parse_args(argv)
+    from sandbox import runtime
+
+    runtime.init("cpu")
+    r = cycles(a.level, a.cycles, warmup=a.warmup, steps=a.steps)
+    print(f"{r['cycles']} cycles of load, {r['steps']} step(s), close: {r['rss_mb_first']:.0f} -> "
+          f"{r['rss_mb_last']:.0f} MB; {r['mb_per_cycle']:.3f} MB per cycle after {r['warmup']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
