@@ -102,6 +102,12 @@ def _resolve(arch: str) -> list:
     return [ti.cuda, ti.vulkan, ti.metal, ti.cpu]
 
 
+KERNEL_CACHE_BYTES = 2**30
+"""Size of Taichi's on-disk kernel cache (least recently used kernels go past it). Taichi's own 100 MB
+holds about one level's kernels in both compile modes: a sweep over many levels and settings would
+compile most runs afresh (tens of seconds each)."""
+
+
 def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None = None) -> str:
     """Initialise Taichi once for this process.
 
@@ -153,6 +159,7 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
         random_seed=0,
         default_fp=ti.f32,
         offline_cache=True,
+        offline_cache_max_size_of_files=KERNEL_CACHE_BYTES,
         log_level=os.environ.get("SANDBOX_TI_LOG", "warn"),
         **kwargs,
     )
