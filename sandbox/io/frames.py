@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import pathlib
 import time
 from typing import Any
@@ -303,7 +304,10 @@ class FrameRecorder:
         import imageio.v2 as imageio
 
         self.frames_dir.mkdir(parents=True, exist_ok=True)
-        imageio.imwrite(self.frames_dir / f"{frame_index:05d}.png", img)
+        path = self.frames_dir / f"{frame_index:05d}.png"
+        tmp = path.with_name(path.stem + ".tmp.png")
+        imageio.imwrite(tmp, img)  # a frame on disk is whole: written aside, then renamed
+        os.replace(tmp, path)
         if self.video:
             if self._mp4 is None:
                 self._mp4 = imageio.get_writer(
@@ -364,4 +368,6 @@ def write_sheet(path: pathlib.Path, tiles: list[tuple[str, np.ndarray]], *, colu
             0.02, 0.97, label, transform=ax.transAxes, va="top", ha="left", fontsize=9, color="white",
             bbox={"facecolor": "black", "alpha": 0.6, "pad": 2, "edgecolor": "none"},
         )  # fmt: skip
-    fig.savefig(path, dpi=dpi, facecolor="black")
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=dpi, facecolor="black")
+    os.replace(tmp, path)

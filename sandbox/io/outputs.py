@@ -131,6 +131,13 @@ def write_state(path: pathlib.Path, world) -> None:
     os.replace(tmp, path)
 
 
+def _export(mesh, path: pathlib.Path) -> None:
+    """trimesh export through a temporary file and a rename."""
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    mesh.export(tmp)
+    os.replace(tmp, path)
+
+
 def write_meshes(folder: pathlib.Path, world) -> list[str]:
     """meshes/<name>.ply for every cloth (its grid triangles), rope (polyline) and object."""
     import trimesh
@@ -139,14 +146,13 @@ def write_meshes(folder: pathlib.Path, world) -> list[str]:
     written = []
     x = world.positions()
     for name, c in world.cloths.items():
-        trimesh.Trimesh(x[c.start : c.end], c.faces, process=False).export(folder / f"cloth_{name}.ply")
+        _export(trimesh.Trimesh(x[c.start : c.end], c.faces, process=False), folder / f"cloth_{name}.ply")
         written.append(f"cloth_{name}.ply")
     for name, r in world.ropes.items():
-        pts = x[r.start : r.end]
-        trimesh.PointCloud(pts).export(folder / f"rope_{name}.ply")
+        _export(trimesh.PointCloud(x[r.start : r.end]), folder / f"rope_{name}.ply")
         written.append(f"rope_{name}.ply")
     for name in world.object_specs:
         v, f = world.objects.world_mesh(world.object_index(name))
-        trimesh.Trimesh(v, f, process=False).export(folder / f"object_{name}.ply")
+        _export(trimesh.Trimesh(v, f, process=False), folder / f"object_{name}.ply")
         written.append(f"object_{name}.ply")
     return written
