@@ -145,6 +145,7 @@ def cmd_sweep(a: argparse.Namespace) -> int:
     if problem:
         print(f"sandbox sweep: {problem}", file=sys.stderr)
         return 2
+    _limits(a)
     try:
         if a.standard:
             variants_of, base, source = plan.standard_variants, None, "--standard"
@@ -152,7 +153,11 @@ def cmd_sweep(a: argparse.Namespace) -> int:
             axes = load_sweep(a.grid)
             base, source = pathlib.Path(a.grid).parent, a.grid
             if a.samples is not None:
-                points = plan.sample_variants(axes, a.samples, a.seed or 0)
+                drawn = plan.sample_variants(axes, a.samples, a.seed or 0)
+                points = [v for k, v in enumerate(drawn) if v not in drawn[:k]]  # a point drawn twice runs once
+                if len(points) < len(drawn):
+                    print(f"sweep: {len(drawn) - len(points)} of {len(drawn)} points drawn twice run once",
+                          file=sys.stderr)
             else:
                 points = plan.grid_variants(axes)
             variants_of = lambda data: [("", v) for v in points]  # noqa: E731
@@ -214,7 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--arch", choices=ARCHES, default="cpu")
     b.set_defaults(fn=cmd_bench)
     sw = sub.add_parser("sweep", help="run levels under many perturbations and report their pass rates",
-                        parents=[common])
+                        parents=[common, limits])
     sw.add_argument("levels", nargs="*")
     sw.add_argument("--out", default="runs/sweep", help="sweep folder (default runs/sweep); a second run of the "
                                                        "same sweep goes on where it stopped")

@@ -55,6 +55,8 @@ class RunOptions:
 
 OUTPUTS = ("summary.json", "metrics.jsonl", "state.npz", "frames", "meshes", "anim.mp4", "anim.gif", "sheet.png")
 """What a run writes into its folder: a folder holding any of them holds another run's outputs."""
+RUN_MARKERS = ("summary.json", "metrics.jsonl", "state.npz")
+"""Files that only a run writes: ``frames/`` and ``meshes/`` count as a run's outputs only beside one of them."""
 
 
 def _prepare_out(out: pathlib.Path, overwrite: bool) -> str | None:
@@ -67,7 +69,8 @@ def _prepare_out(out: pathlib.Path, overwrite: bool) -> str | None:
 
     if out.exists() and not out.is_dir():
         return f"--out {out}: exists and is not a folder"
-    old = [name for name in OUTPUTS if (out / name).exists()]
+    marked = any((out / name).is_file() for name in RUN_MARKERS)  # a run's folder: its frames/, meshes/ too
+    old = [name for name in OUTPUTS if (out / name).exists() and (marked or name not in ("frames", "meshes"))]
     if old and not overwrite:
         return (f"--out {out}: holds the outputs of another run ({', '.join(old)}); give --overwrite to replace "
                 "them, or another folder")
@@ -175,7 +178,8 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
     systems: dict[str, list[float]] = {}
     stages: dict[str, list[float]] = {}
     code = EXIT_ERROR
-    sigint_name: list = [None]
+    signals = contextlib.ExitStack()  # stop signals are deferred from here to the last output written
+    sigint = signals.enter_context(_deferred_sigint())
     try:
         from sandbox.api import Sandbox
 
@@ -203,18 +207,16 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
 
             bar = tqdm(total=n, desc=level.name, unit="frame", leave=False, disable=None)  # None: off when stderr is not a terminal
         last_state = world.fsm.state if world.fsm else ""
-        with _deferred_sigint() as sigint:
-            try:
-                _frames(sim, world, n, log, summary, recorder, bar, frame_ms, systems, stages, last_state, sigint)
-            finally:
-                sigint_name[0] = sigint["stop"]
+        if sigint["stop"]:  # a stop signal while the level was being built
+            raise KeyboardInterrupt
+        _frames(sim, world, n, log, summary, recorder, bar, frame_ms, systems, stages, last_state, sigint)
         if bar is not None:
             bar.close()
         summary["status"] = "completed"
         code = EXIT_OK
     except KeyboardInterrupt:
         summary["status"] = "interrupted"
-        how = sigint_name[0] or "SIGINT"
+        how = sigint["stop"] or "SIGINT"
         summary["message"] = f"interrupted ({how}); outputs cover the frames run, state.npz the last of them"
         code = EXIT_INTERRUPTED
     except Exception as exc:  # reported in the summary, never lost
@@ -273,6 +275,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
             pass
         if code == EXIT_OK or code == EXIT_CRITERIA:
             code = EXIT_ERROR
+    signals.close()
     if world is not None:
         world.close()  # frees its field tree: a process may run many levels (tools/sweep_level.py)
     return code, summary

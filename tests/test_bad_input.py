@@ -43,6 +43,15 @@ def test_the_corpus_has_one_fault_per_file(capsys):
         assert n == (2 if path.stem == "cloth_huge" else 1), (path.name, n)
 
 
+def test_yaml_merge_keys_may_be_overridden():
+    """A mapping's own key overrides one merged into it (``<<: *base``); a key given twice is still an error."""
+    from sandbox.levels import yamlio
+
+    doc = yamlio.parse("b: &b {x: 1, y: 2}\nc: {<<: *b, x: 5}\nd: {x: 1, x: 2}\n")
+    assert doc.data["c"] == {"x": 5, "y": 2}
+    assert [(p, m) for p, _, m in doc.problems] == [(("d", "x"), "duplicate key 'x'")]
+
+
 def test_an_oversize_file_is_refused_unread(tmp_path, capsys):
     """A level file over the size bound is refused with its size and the bound."""
     big = tmp_path / "big.yaml"

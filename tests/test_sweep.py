@@ -91,6 +91,10 @@ def test_resolve_makes_relative_values_and_checks_each_variant():
     runs = plan.resolve(ROOT / "levels" / "drape_box.yaml",
                         [("", {"sim.substeps": {"scale": 1.25}}), ("", {"sim.iterations": {"add": 1}})])
     assert runs[0].overrides == {"sim.substeps": 13} and runs[1].overrides == {"sim.iterations": 2}
+    wind = plan.resolve(ROOT / "levels" / "rope_wind.yaml", [("", {"fsm.1.with.w0": {"scale": 1.25}})])
+    assert wind[0].overrides == {"fsm.1.with.w0": 1.25}  # not a whole number by the schema: kept as it comes
+    again = plan.resolve(ROOT / "levels" / "rope_wind.yaml", [("", {"fsm.1.with.w0": {"scale": 1.25}})], frames=20)
+    assert again[0].id != wind[0].id  # a run of other frames is another run
     with pytest.raises(SweepError) as err:
         plan.resolve(TINY, [("a", {"place.ghost.shift": [0, 0, 0]}), ("b", {"swap.cord": "sphere"}),
                             ("c", {"sim.substeps": 0})])
@@ -115,6 +119,8 @@ def test_scene_shift_and_turn_move_every_body_rigidly():
     np.testing.assert_allclose(d1, d0, atol=1e-12)
     c = placement.pivot(data, list(placement.bodies(data)))
     np.testing.assert_allclose(after, (before - c) @ q.T + c + [0.02, 0.03, -0.05], atol=1e-12)
+    spin = {"time": 0.0, "position": [0, 0, 0], "rotation": [0, 360, 0]}
+    assert placement._turned(spin["rotation"], 10.0) == [0.0, 370.0, 0.0]  # a spin stays a spin
     block = data["scene"]["objects"][2]
     np.testing.assert_allclose(euler_matrix(ov["scene.objects.2.rotation"]),
                                q @ euler_matrix(block.get("rotation", [0, 0, 0])), atol=1e-12)
@@ -196,6 +202,20 @@ def test_wilson_interval_closed_forms():
     assert wilson(0, 0) == (0.0, 1.0)
 
 
+def test_reports_count_outcomes_of_the_level_as_it_is():
+    """Rows of an older level file, interrupted runs and lost workers are set aside, not counted as failures."""
+    header = table.columns([], ["x <= 1"])
+    rows = [{"run": "1", "level_sha": "old", "status": "completed", "success": True},
+            {"run": "2", "level_sha": "new", "status": "interrupted", "success": False},
+            {"run": "3", "level_sha": "new", "status": "lost", "success": False},
+            {"run": "4", "level_sha": "new", "status": "completed", "success": True, "ok:x <= 1": True},
+            {"run": "5", "level_sha": "new", "status": "completed", "success": False, "ok:x <= 1": False}]
+    rep = report.level_report(header, rows)
+    assert rep["runs"] == 2 and rep["passed"] == 1
+    assert rep["set_aside"] == {"older level": 1, "interrupted": 1, "lost": 1}
+    assert rep["most_failed"] == "x <= 1" and rep["most_failed_count"] == 1
+
+
 def test_margins_are_fractions_of_the_bar():
     """A criterion's margin is its distance to the bar over the bar, negative when it fails."""
     assert math.isclose(report.margin("max_strain(R) <= 0.01", 0.0075), 0.25)
@@ -213,13 +233,16 @@ def test_table_keeps_whole_rows_and_the_latest_of_a_run(tmp_path):
     t.append({"run": "b", "status": "completed", "success": True, "value:x <= 1": [1, 2]})
     t.close()
     with open(tmp_path / "runs.csv", "a") as f:
-        f.write("c,lev,sha,half a ro")
+        f.write('c,lev,sha,"half a row, its quote open')
     t = table.Table(tmp_path / "runs.csv", header)
     t.append({"run": "a", "status": "completed", "success": False, "value:x <= 1": 2.0})
+    t.append({"run": "1234567890e12345", "status": "error", "error": "two lines,\nand a comma"})
     t.close()
     _, rows = table.read(tmp_path / "runs.csv")
     got = {r["run"]: r for r in rows}
-    assert set(got) == {"a", "b"} and got["a"]["status"] == "completed" and got["a"]["value:x <= 1"] == 2.0
+    assert set(got) == {"a", "b", "1234567890e12345"}  # an id that looks like a number stays text
+    assert got["1234567890e12345"]["error"] == "two lines,\nand a comma"
+    assert got["a"]["status"] == "completed" and got["a"]["value:x <= 1"] == 2.0
     assert got["b"]["value:x <= 1"] == [1, 2] and got["b"]["success"] is True
     with pytest.raises(ValueError, match="another sweep"):
         table.Table(tmp_path / "runs.csv", table.columns([], ["x <= 1"]))

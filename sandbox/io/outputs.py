@@ -89,20 +89,21 @@ class MetricsLog:
     """
 
     def __init__(self, path: pathlib.Path) -> None:
-        self.file = open(path, "wb")
+        self.file = open(path, "wb", buffering=0)  # each line goes to the file at once: nothing held back
 
     def write(self, row: dict) -> None:
         line = (json.dumps(_clean(row), default=_default) + "\n").encode()
         start = self.file.tell()
         try:
-            self.file.write(line)
-            self.file.flush()
+            done = 0
+            while done < len(line):
+                n = self.file.write(line[done:])
+                if not n:
+                    raise OSError(28, "No space left on device", str(self.file.name))
+                done += n
         except OSError:
-            try:
-                self.file.seek(start)
-                self.file.truncate(start)
-            except OSError:
-                os.ftruncate(self.file.fileno(), start)
+            os.ftruncate(self.file.fileno(), start)
+            self.file.seek(start)
             raise
 
     def close(self) -> None:

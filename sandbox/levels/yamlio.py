@@ -158,8 +158,10 @@ def _build(loader: _Loader, node: yaml.Node, path: Path, doc: Document, count: l
     if isinstance(node, yaml.SequenceNode):
         return [_build(loader, child, path + (i,), doc, count) for i, child in enumerate(node.value)]
     if isinstance(node, yaml.MappingNode):
-        loader.flatten_mapping(node)
+        explicit = {id(k) for k, _ in node.value if k.tag != "tag:yaml.org,2002:merge"}
+        loader.flatten_mapping(node)  # merged pairs first, then the mapping's own, which override them
         out: dict[Any, Any] = {}
+        merged: set[Any] = set()
         for key_node, value_node in node.value:
             if not isinstance(key_node, yaml.ScalarNode):
                 doc.problems.append((path, _mark(key_node), "mapping keys must be scalars"))
@@ -168,10 +170,13 @@ def _build(loader: _Loader, node: yaml.Node, path: Path, doc: Document, count: l
             if not isinstance(key, Hashable) or isinstance(key, (list, dict)):
                 doc.problems.append((path, _mark(key_node), "mapping keys must be scalars"))
                 continue
-            if key in out:
+            if key in out and key not in merged:
                 doc.problems.append(
                     (path + (key,), _mark(key_node), f"duplicate key {key!r}")
                 )
+            merged.discard(key)
+            if id(key_node) not in explicit:
+                merged.add(key)
             doc.keys[path + (key,)] = _mark(key_node)
             out[key] = _build(loader, value_node, path + (key,), doc, count)
         return out

@@ -16,7 +16,7 @@ import tempfile
 from collections.abc import Iterator
 from typing import Any
 
-from sandbox.sweep.execute import RunSpec, execute, kill_all
+from sandbox.sweep.execute import RunSpec, allow_runs, execute, kill_all
 
 BACKENDS = ("local", "ray")
 
@@ -36,6 +36,7 @@ def run_local(jobs: list[tuple[Any, RunSpec, pathlib.Path]], workers: int) -> It
     Closing the generator early (Ctrl-C) kills the runs still going and
     starts no more.
     """
+    allow_runs()
     pool = cf.ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="sweep")
     futures = {pool.submit(_guarded, spec, out): key for key, spec, out in jobs}
     try:

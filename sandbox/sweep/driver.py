@@ -67,7 +67,8 @@ class _Level:
 
 
 def prepare(levels: list[str | pathlib.Path], variants_of: Callable[[dict], list[tuple[str, plan.Variant]]],
-            out: pathlib.Path, *, sweep_base: pathlib.Path | None = None, source: str = "<sweep>") -> list[_Level]:
+            out: pathlib.Path, *, sweep_base: pathlib.Path | None = None, source: str = "<sweep>",
+            frames: int | None = None) -> list[_Level]:
     """Every run of every level, resolved and checked; nothing runs if anything is wrong.
 
     Raises:
@@ -87,7 +88,7 @@ def prepare(levels: list[str | pathlib.Path], variants_of: Callable[[dict], list
         try:
             level = load_level(path)
             data = plan.yamlio.parse(path.read_text(encoding="utf-8")).data
-            runs = plan.resolve(path, variants_of(data), sweep_base=sweep_base, source=source)
+            runs = plan.resolve(path, variants_of(data), sweep_base=sweep_base, source=source, frames=frames)
         except plan.SweepError as exc:
             problems += exc.issues
             continue
@@ -122,8 +123,9 @@ def run_sweep(levels: list[str | pathlib.Path], variants_of: Callable[[dict], li
         SweepError: the sweep or a level is invalid (nothing has run).
         ValueError: ``out`` holds tables of another sweep.
     """
-    out = pathlib.Path(opts.out)
-    prepared = prepare(levels, variants_of, out, sweep_base=sweep_base, source=source)
+    out = pathlib.Path(opts.out).resolve()  # tasks on other nodes (--shared) get the full path
+    prepared = prepare(levels, variants_of, out, sweep_base=sweep_base, source=source, frames=opts.frames)
+    env = {k: os.environ[k] for k in ("SANDBOX_LIMITS", "SANDBOX_MESH_DIRS") if os.environ.get(k)}
     workers = opts.workers or cores()
     threads = opts.threads or max(1, cores() // workers)
     tables = {}
@@ -139,8 +141,12 @@ def run_sweep(levels: list[str | pathlib.Path], variants_of: Callable[[dict], li
                 if run.id in done:
                     skipped += 1
                     continue
+                run_env = dict(env)
+                if run.mesh_dirs:
+                    run_env["SANDBOX_MESH_DIRS"] = os.pathsep.join([*filter(None, [env.get("SANDBOX_MESH_DIRS")]),
+                                                                    *run.mesh_dirs])
                 spec = RunSpec(run.id, run.level, run.overrides, run.compile, threads, opts.frames,
-                               opts.frames_every, opts.timeout)
+                               opts.frames_every, opts.timeout, run_env)
                 jobs.append(((lv, run), spec, lv.folder / "runs" / run.id))
         jobs = interleave(jobs)
         print(f"sweep: {len(jobs)} runs to go ({skipped} already done) over {len(prepared)} level(s), "

@@ -47,6 +47,7 @@ class RunSpec:
         frames: frames to run (None: the level's own).
         frames_every: write a PNG every k frames (0: none).
         timeout: seconds before the run is killed (None: no limit).
+        env: environment the run needs wherever it runs (``SANDBOX_LIMITS``, ``SANDBOX_MESH_DIRS``).
     """
 
     id: str
@@ -57,6 +58,7 @@ class RunSpec:
     frames: int | None = None
     frames_every: int = 0
     timeout: float | None = None
+    env: dict = dataclasses.field(default_factory=dict)
 
 
 def criterion_names(criteria) -> list[str]:
@@ -75,14 +77,21 @@ def criterion_names(criteria) -> list[str]:
 
 _LIVE: set[subprocess.Popen] = set()
 _LIVE_LOCK = threading.Lock()
+_STOPPING = threading.Event()
 
 
 def kill_all() -> None:
-    """Kill the process groups of every run still going (on Ctrl-C of the sweep)."""
+    """Kill the process groups of every run still going, and start no more (on Ctrl-C of the sweep)."""
+    _STOPPING.set()
     with _LIVE_LOCK:
         procs = list(_LIVE)
     for p in procs:
         _kill(p)
+
+
+def allow_runs() -> None:
+    """Let runs start again (a new sweep in the same process)."""
+    _STOPPING.clear()
 
 
 def _kill(proc: subprocess.Popen) -> None:
@@ -125,8 +134,12 @@ def execute(spec: RunSpec, out: pathlib.Path) -> dict[str, Any]:
     env["SANDBOX_THREADS"] = str(int(spec.threads))
     env["PYTHONUNBUFFERED"] = "1"
     env["SANDBOX_SWEEP_PARENT"] = str(os.getpid())
+    env.update({k: str(v) for k, v in spec.env.items()})
     t0 = time.perf_counter()
     status = None
+    if _STOPPING.is_set():
+        return {"status": "interrupted", "exit_code": None, "wall_s": 0.0, "summary": None,
+                "error": "the sweep stopped before this run started"}
     with open(out / "log.txt", "wb") as log:
         proc = subprocess.Popen(
             [sys.executable, "-m", "sandbox.sweep.worker", str(out)], stdout=log, stderr=subprocess.STDOUT,
@@ -134,6 +147,8 @@ def execute(spec: RunSpec, out: pathlib.Path) -> dict[str, Any]:
         )
         with _LIVE_LOCK:
             _LIVE.add(proc)
+            if _STOPPING.is_set():  # kill_all ran while this run was starting
+                _kill(proc)
         try:
             code = proc.wait(timeout=spec.timeout)
         except subprocess.TimeoutExpired:

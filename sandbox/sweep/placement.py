@@ -38,9 +38,19 @@ def _yaw(degrees: float) -> np.ndarray:
     return Rotation.from_euler("y", degrees, degrees=True).as_matrix()
 
 
-def _euler(matrix: np.ndarray) -> list[float]:
-    """XYZ Euler degrees (R = Rz Ry Rx) of a rotation matrix."""
-    return [float(a) for a in Rotation.from_matrix(matrix).as_euler("xyz", degrees=True)]
+def _euler(matrix: np.ndarray, near=(0.0, 0.0, 0.0)) -> list[float]:
+    """XYZ Euler degrees (R = Rz Ry Rx) of a rotation matrix, each angle the turn nearest to ``near``'s
+    (keyframes interpolate their angles: a spin of 360 degrees must stay one)."""
+    got = Rotation.from_matrix(matrix).as_euler("xyz", degrees=True)
+    return [float(a + 360.0 * round((float(b) - a) / 360.0)) for a, b in zip(got, near)]
+
+
+def _turned(euler, turn: float) -> list[float]:
+    """An object's XYZ Euler angles turned by ``turn`` degrees about the world's vertical (Q R)."""
+    rx, ry, rz = (float(a) for a in euler)
+    if rx == 0.0 and rz == 0.0:  # a turn about y alone: exact, and interpolates as the level's does
+        return [rx, ry + float(turn), rz]
+    return _euler(_yaw(turn) @ _matrix(euler), (rx, ry + float(turn), rz))
 
 
 def _matrix(euler) -> np.ndarray:
@@ -124,12 +134,11 @@ def placement_overrides(data: dict, target: str, shift=(0.0, 0.0, 0.0), turn: fl
             base = f"scene.objects.{k}"
             out[f"{base}.position"] = move(obj.get("position", [0, 0, 0]))
             if turn:
-                out[f"{base}.rotation"] = _euler(q @ _matrix(obj.get("rotation", [0, 0, 0])))
+                out[f"{base}.rotation"] = _turned(obj.get("rotation", [0, 0, 0]), turn)
             for j, key in enumerate((obj.get("motion") or {}).get("keyframes", [])):
                 out[f"{base}.motion.keyframes.{j}.position"] = move(key["position"])
                 if turn:
-                    out[f"{base}.motion.keyframes.{j}.rotation"] = _euler(
-                        q @ _matrix(key.get("rotation", [0, 0, 0])))
+                    out[f"{base}.motion.keyframes.{j}.rotation"] = _turned(key.get("rotation", [0, 0, 0]), turn)
         elif kind == "cloth":
             cloth = scene["cloths"][k]
             out[f"scene.cloths.{k}.center"] = move(cloth["center"])
@@ -146,7 +155,7 @@ def placement_overrides(data: dict, target: str, shift=(0.0, 0.0, 0.0), turn: fl
                 p2 = q @ (r @ c + np.asarray(key["position"], float) - c) + c + s - r2 @ (c + s)
                 out[f"scene.ropes.{k}.motion.keyframes.{j}.position"] = _vec(p2)
                 if turn:
-                    out[f"scene.ropes.{k}.motion.keyframes.{j}.rotation"] = _euler(r2)
+                    out[f"scene.ropes.{k}.motion.keyframes.{j}.rotation"] = _euler(r2, key.get("rotation", [0, 0, 0]))
     camera = scene.get("camera")
     if target == SCENE and isinstance(camera, dict):
         for key in ("position", "look_at"):

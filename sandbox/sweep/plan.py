@@ -27,7 +27,8 @@ A sweep file holds the axes::
 
 ``--grid`` runs the product of the axes; ``--samples N --seed S`` draws N
 points instead, each axis independently (a list uniformly, a range
-uniformly between its ends, integers where both ends are integers).
+uniformly between its ends; whole numbers for a key the schema holds as an
+integer, such as ``sim.substeps``). A point drawn twice runs once.
 """
 
 from __future__ import annotations
@@ -64,25 +65,37 @@ class SweepError(ValueError):
         return "\n".join(str(i) for i in self.issues)
 
 
+def integer_key(key: str) -> bool:
+    """Whether a level key holds an integer by the schema (``sim.substeps``, a rope's ``segments``, ...)."""
+    from sandbox.levels.schema import Sim  # noqa: PLC0415
+
+    parts = key.split(".")
+    if parts[0] == "sim" and len(parts) == 2 and parts[1] in Sim.model_fields:
+        return "int" in str(Sim.model_fields[parts[1]].annotation)
+    if parts[0] == "scene" and len(parts) >= 4:
+        return (parts[1], parts[3]) in (("ropes", "segments"), ("cloths", "resolution"))
+    return False
+
+
 @dataclasses.dataclass(frozen=True)
 class Range:
-    """Values between ``lo`` and ``hi``: ``steps`` of them, evenly, in a grid; uniform when sampled."""
+    """Values between ``lo`` and ``hi``: ``steps`` of them, evenly, in a grid; uniform when sampled.
+
+    ``integer``: whole numbers (grid values rounded half up), for a key the schema holds as an integer.
+    """
 
     lo: float
     hi: float
     steps: int
-
-    @property
-    def integer(self) -> bool:
-        return isinstance(self.lo, int) and isinstance(self.hi, int)
+    integer: bool = False
 
     def grid(self) -> list:
         vals = np.linspace(self.lo, self.hi, self.steps)
-        return [int(round(v)) for v in vals] if self.integer else [float(v) for v in vals]
+        return [int(np.floor(v + 0.5)) for v in vals] if self.integer else [float(v) for v in vals]
 
     def draw(self, rng: np.random.Generator):
         if self.integer:
-            return int(rng.integers(self.lo, self.hi + 1))
+            return int(rng.integers(math.ceil(self.lo), math.floor(self.hi) + 1))
         return float(rng.uniform(self.lo, self.hi))
 
 
@@ -119,6 +132,7 @@ class Run:
         label: the variant in words.
         overrides: dotted level keys -> values that make the variant.
         compile: ``full`` or ``fast``.
+        mesh_dirs: folders the run may read mesh files from besides the level's (swapped-in meshes).
     """
 
     id: str
@@ -129,6 +143,7 @@ class Run:
     label: str
     overrides: dict
     compile: str = "full"
+    mesh_dirs: list = dataclasses.field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- sweep files
@@ -230,7 +245,8 @@ def parse_sweep(text: str, *, source: str = "<string>", base_dir: pathlib.Path |
             elif not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
                 found.append((path + ("steps",), f"steps must be an integer >= 1, got {steps!r}", False))
             else:
-                axes.append(Axis(str(key), Range(rng[0], rng[1], steps)))
+                whole = kind == "set" and integer_key(str(key))
+                axes.append(Axis(str(key), Range(rng[0], rng[1], steps, whole)))
             continue
         if not isinstance(values, list) or not values:
             found.append((path, "an axis takes a non-empty list of values or {range: [lo, hi], steps: n}", False))
@@ -360,24 +376,44 @@ def _lookup(data: Any, dotted: str) -> Any:
     return node
 
 
-def _relative(base: Any, rel: dict) -> Any:
+def _relative(key: str, base: Any, rel: dict) -> Any:
     (op, x), = rel.items()
     if not _is_number(base):
         raise ValueError(f"its value in the level is {base!r}, not a number")
     value = base + x if op == "add" else base * x
-    if isinstance(base, int):
+    if integer_key(key):
         return int(math.floor(value + 0.5))
     return float(value)
 
 
-def run_id(level_sha: str, variant: Variant) -> str:
-    """Stable id of a run: 16 hex digits of the SHA-1 of the level's content hash and the variant."""
-    text = json.dumps([level_sha, variant], sort_keys=True)
+def run_id(level_sha: str, variant: Variant, frames: int | None = None) -> str:
+    """Stable id of a run: 16 hex digits of the SHA-1 of the level's content hash, the variant and the frames
+    to run (when not the level's own)."""
+    text = json.dumps([level_sha, variant] if frames is None else [level_sha, variant, frames], sort_keys=True)
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
+def _check_with_dirs(level: pathlib.Path, overrides: dict, mesh_dirs: list[str]):
+    """``check_level`` with ``mesh_dirs`` allowed as well (the folders of swapped-in mesh files)."""
+    import os  # noqa: PLC0415
+
+    from sandbox.levels import check_level  # noqa: PLC0415
+
+    old = os.environ.get("SANDBOX_MESH_DIRS")
+    if mesh_dirs:
+        os.environ["SANDBOX_MESH_DIRS"] = os.pathsep.join([*filter(None, [old]), *mesh_dirs])
+    try:
+        return check_level(level, overrides)
+    finally:
+        if mesh_dirs:
+            if old is None:
+                os.environ.pop("SANDBOX_MESH_DIRS", None)
+            else:
+                os.environ["SANDBOX_MESH_DIRS"] = old
+
+
 def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_base: pathlib.Path | None = None,
-            source: str = "<sweep>") -> list[Run]:
+            source: str = "<sweep>", frames: int | None = None) -> list[Run]:
     """The runs of ``variants`` on one level, each checked as the level it makes.
 
     Args:
@@ -386,13 +422,14 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
             ``describe(variant)``.
         sweep_base: folder that ``mesh:`` swap paths start from.
         source: the name of the sweep in messages.
+        frames: frames each run runs, when not the level's own (part of the run's id).
 
     Raises:
         SweepError: every variant that cannot be made or does not make a valid
             level, with what was wrong (nothing has run).
     """
     from sandbox.levels import check_level  # noqa: PLC0415
-    from sandbox.levels.loader import dump_level  # noqa: PLC0415
+    from sandbox.levels.loader import apply_overrides, dump_level  # noqa: PLC0415
 
     import sandbox.maneuvers  # noqa: F401, PLC0415  (registers the maneuvers the levels name)
 
@@ -416,6 +453,7 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
         label = label or describe(variant)
         overrides: dict[str, Any] = {}
         compile_mode = "full"
+        mesh_dirs: list[str] = []
         ok = True
         shifts: dict[str, dict] = {}
         for key, value in variant.items():
@@ -427,6 +465,8 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
             elif kind == "swap":
                 obj = key.split(".", 1)[1]
                 path = f"mesh:{(base / value[5:]).resolve()}" if value.startswith("mesh:") else value
+                if value.startswith("mesh:"):
+                    mesh_dirs.append(str((base / value[5:]).resolve().parent))  # the swap's file may be read
                 try:
                     overrides.update(placement.swap_overrides(data, obj, path, level.parent))
                 except KeyError:
@@ -440,7 +480,7 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
             elif kind == "set":
                 if isinstance(value, dict):
                     try:
-                        value = _relative(_lookup(full, key), value)
+                        value = _relative(key, _lookup(full, key), value)
                     except KeyError:
                         problem(label, f"{key}: the level has no value there to be relative to")
                         ok = False
@@ -450,23 +490,28 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
                         ok = False
                         continue
                 overrides[key] = value
-        for target, move in shifts.items():
+        placed = data
+        for target, move in sorted(shifts.items(), key=lambda kv: kv[0] != placement.SCENE):  # scene first
             try:
-                overrides.update(placement.placement_overrides(
-                    data, target, move.get("shift", (0.0, 0.0, 0.0)), move.get("turn", 0.0)))
+                moved = placement.placement_overrides(
+                    placed, target, move.get("shift", (0.0, 0.0, 0.0)), move.get("turn", 0.0))
+                overrides.update(moved)
+                placed = json.loads(json.dumps(placed))  # a body placed after the scene moves from where it went
+                apply_overrides(placed, moved)
             except KeyError:
                 names = ", ".join(placement.bodies(data)) or "(none)"
                 problem(label, f"place.{target}: not a body of the level; allowed: scene, {names}")
                 ok = False
         if not ok:
             continue
-        check = check_level(level, overrides)
+        check = _check_with_dirs(level, overrides, mesh_dirs)
         if check.errors:
             for e in check.errors:
                 problem(label, f"{e.path}: {e.message}")
             continue
         plain = json.loads(json.dumps(variant))
-        runs.append(Run(run_id(sha, plain), str(level), name, sha, plain, label, overrides, compile_mode))
+        runs.append(Run(run_id(sha, plain, frames), str(level), name, sha, plain, label, overrides, compile_mode,
+                        mesh_dirs))
     if problems:
         raise SweepError(problems)
     seen: dict[str, str] = {}

@@ -86,8 +86,26 @@ def _axes(header: list[str]) -> list[str]:
     return [c for c in header if c not in fixed and c not in crit]
 
 
+NOT_OUTCOMES = ("interrupted", "lost")
+"""Endings that say nothing of the level (the sweep stopped, a node went away): kept out of the pass rate."""
+
+
+def current_rows(rows: list[dict]) -> tuple[list[dict], dict[str, int]]:
+    """The rows that measure the level as it is now: of its latest content (``level_sha`` of the last row
+    written) and with an outcome; and how many were set aside, by reason."""
+    if not rows:
+        return [], {}
+    sha = rows[-1].get("level_sha")
+    aside = {"older level": sum(1 for r in rows if r.get("level_sha") != sha)}
+    rows = [r for r in rows if r.get("level_sha") == sha]
+    for status in NOT_OUTCOMES:
+        aside[status] = sum(1 for r in rows if r.get("status") == status)
+    return [r for r in rows if r.get("status") not in NOT_OUTCOMES], {k: v for k, v in aside.items() if v}
+
+
 def level_report(header: list[str], rows: list[dict]) -> dict[str, Any]:
-    """Pass rate, interval, endings, and per criterion its failures and worst margin."""
+    """Pass rate, interval, endings, and per criterion its failures and worst margin (of ``current_rows``)."""
+    rows, aside = current_rows(rows)
     n = len(rows)
     passed = sum(1 for r in rows if r.get("success") is True)
     lo, hi = wilson(passed, n)
@@ -103,6 +121,7 @@ def level_report(header: list[str], rows: list[dict]) -> dict[str, Any]:
     return {
         "level": levels[0] if len(levels) == 1 else ", ".join(levels),
         "runs": n, "passed": passed, "pass_rate": passed / n if n else None, "interval95": [lo, hi],
+        "set_aside": aside,
         "status": dict(Counter(str(r.get("status")) for r in rows)),
         "criteria": crits,
         "most_failed": worst[0] if worst and worst[1]["failed"] else None,
@@ -237,6 +256,7 @@ def write_reports(out: pathlib.Path, *, plots: bool = True) -> list[dict[str, An
     for folder in folders:
         header, rows = table.read(folder / table.FILE)
         rep = level_report(header, rows)
+        rows = current_rows(rows)[0]
         rep["folder"] = folder.name
         rep["level"] = rep["level"] or folder.name
         if plots and rows:

@@ -19,6 +19,8 @@ from typing import Any
 FIRST = ("run", "level", "level_sha", "variant")
 LAST = ("frame_ms_p50", "wall_s", "frames_run", "error", "backend", "host")
 OUTCOME = ("status", "exit_code", "success")
+TEXT = ("run", "level", "level_sha", "variant", "status", "error", "backend", "host")
+"""Columns read back as text, whatever they look like (a run id such as ``1234e56`` is not a number)."""
 FILE = "runs.csv"
 
 
@@ -69,11 +71,33 @@ def read(path: pathlib.Path) -> tuple[list[str], list[dict[str, Any]]]:
         for cells in reader:
             if len(cells) != len(header):
                 continue
-            row = {k: decode(v) for k, v in zip(header, cells)}
+            row = {k: (v if k in TEXT else decode(v)) for k, v in zip(header, cells)}
             if row.get("status") is None:
                 continue
             rows[str(row["run"])] = row
     return header, list(rows.values())
+
+
+def _cut_to_whole_rows(path: pathlib.Path, width: int) -> None:
+    """Truncate ``path`` after its last whole row of ``width`` cells (a kill can leave half a row, whose open
+    quotes would swallow the rows appended after it)."""
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    lines = text.splitlines(keepends=True)
+    used = [0]
+
+    def feed():
+        for line in lines:
+            used[0] += len(line)
+            yield line
+
+    good = 0
+    reader = csv.reader(feed())
+    for cells in reader:
+        if len(cells) == width and text[:used[0]].endswith(("\n", "\r")):
+            good = used[0]
+    if good < len(text):
+        with open(path, "r+b") as f:
+            f.truncate(len(text[:good].encode("utf-8")))
 
 
 class Table:
@@ -96,12 +120,7 @@ class Table:
         new = not old
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if not new:
-            with open(self.path, "rb") as f:  # a row cut short by a kill: end its line, it is skipped on reading
-                f.seek(-1, os.SEEK_END)
-                cut = f.read(1) != b"\n"
-            if cut:
-                with open(self.path, "ab") as g:
-                    g.write(b"\n")
+            _cut_to_whole_rows(self.path, len(self.header))
         self._file = open(self.path, "w" if new else "a", newline="", encoding="utf-8")
         self._writer = csv.writer(self._file)
         if new:
