@@ -376,3 +376,25 @@ def test_runs_go_in_a_fixed_shuffle_with_the_levels_taking_turns():
     assert sorted(order) == sorted(j[0][1].id for j in jobs)
     assert [o[0] for o in order[:6]] == ["a", "b"] * 3
     assert [o for o in order if o[0] == "a"] != [f"a{k:02d}" for k in range(10)]
+
+
+def test_a_run_whose_process_dies_is_recorded_as_crashed(tmp_path):
+    """A run's process killed from outside (as by a segfault or the OOM killer) ends 'crashed' with the signal
+    and the tail of its log; nothing else is lost."""
+    import threading
+
+    from sandbox.sweep import execute
+
+    spec = execute.RunSpec("x", str(TINY), {"sim.frames": 100000}, threads=1)
+    got = {}
+    t = threading.Thread(target=lambda: got.update(execute.execute(spec, tmp_path / "run")))
+    t.start()
+    deadline = time.time() + 120
+    while time.time() < deadline and not (tmp_path / "run" / "metrics.jsonl").exists():
+        time.sleep(0.1)
+    with execute._LIVE_LOCK:
+        (proc,) = list(execute._LIVE)
+    os.kill(proc.pid, signal.SIGKILL)
+    t.join(60)
+    assert got["status"] == "crashed" and "signal 9" in got["error"] and got["exit_code"] == -9
+    assert (tmp_path / "run" / "spec.json").exists() and (tmp_path / "run" / "log.txt").exists()
