@@ -398,3 +398,13 @@ def test_a_run_whose_process_dies_is_recorded_as_crashed(tmp_path):
     t.join(60)
     assert got["status"] == "crashed" and "signal 9" in got["error"] and got["exit_code"] == -9
     assert (tmp_path / "run" / "spec.json").exists() and (tmp_path / "run" / "log.txt").exists()
+
+
+def test_a_mesh_swapped_in_from_another_folder_is_allowed_for_that_run():
+    """A ``mesh:`` swap outside the level's folder checks and runs: its folder is allowed for that run only."""
+    (run,) = plan.resolve(TINY, [("", {"swap.post": "mesh:levels/assets/rock.obj"})], sweep_base=ROOT)
+    assert run.overrides["scene.objects.0.shape"] == "mesh"
+    assert run.mesh_dirs == [str(ROOT / "levels" / "assets")]
+    from sandbox.levels import check_level
+
+    assert check_level(TINY, run.overrides).errors  # without it the file lies outside the level's folder

@@ -105,14 +105,19 @@ def check_level(
     overrides: Mapping[str, Any] | None = None,
     *,
     registry: Mapping[str, type[Maneuver]] | None = None,
+    mesh_dirs: Iterable[str | pathlib.Path] = (),
 ) -> LevelCheck:
-    """Check a level file without raising; see ``load_level``."""
+    """Check a level file without raising; see ``load_level``.
+
+    ``mesh_dirs`` are folders mesh files may come from besides the level's own and those of
+    ``SANDBOX_MESH_DIRS``."""
     path = pathlib.Path(path)
     text, problem, line = read_text(path)
     if problem:
         return LevelCheck(None, [LevelIssue(str(path), line, 1 if line else 0, "", problem)], [])
     return check_level_text(
-        text, source=str(path), base_dir=path.parent, overrides=overrides, registry=registry
+        text, source=str(path), base_dir=path.parent, overrides=overrides, registry=registry,
+        mesh_dirs=mesh_dirs,
     )
 
 
@@ -141,8 +146,9 @@ def check_level_text(
     base_dir: str | pathlib.Path | None = None,
     overrides: Mapping[str, Any] | None = None,
     registry: Mapping[str, type[Maneuver]] | None = None,
+    mesh_dirs: Iterable[str | pathlib.Path] = (),
 ) -> LevelCheck:
-    """Check YAML text without raising; see ``load_level_from_string``."""
+    """Check YAML text without raising; see ``load_level_from_string`` (``mesh_dirs``: see ``check_level``)."""
     registry = REGISTRY if registry is None else registry
     base = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
     try:
@@ -157,13 +163,14 @@ def check_level_text(
         return _result(None, findings, doc, source, set())
     overridden, problems = apply_overrides(doc.data, overrides or {})
     findings += problems
-    level, found = _validate(doc.data, base, registry)
+    level, found = _validate(doc.data, base, registry, [pathlib.Path(d) for d in mesh_dirs])
     findings += found
     return _result(level, findings, doc, source, overridden)
 
 
 def _validate(
-    data: dict, base_dir: pathlib.Path, registry: Mapping[str, type[Maneuver]]
+    data: dict, base_dir: pathlib.Path, registry: Mapping[str, type[Maneuver]],
+    extra_dirs: list[pathlib.Path] = (),
 ) -> tuple[Level | None, list[Finding]]:
     findings: list[Finding] = []
     level = None
@@ -176,7 +183,7 @@ def _validate(
     findings += checks.check_sim(data)
     from sandbox.levels.limits import Limits, mesh_dirs  # noqa: PLC0415
 
-    findings += checks.check_objects(data, base_dir, mesh_dirs())
+    findings += checks.check_objects(data, base_dir, [*mesh_dirs(), *extra_dirs])
     try:
         findings += checks.check_resources(data, Limits.from_env())
     except ValueError as exc:

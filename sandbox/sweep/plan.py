@@ -393,25 +393,6 @@ def run_id(level_sha: str, variant: Variant, frames: int | None = None) -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-def _check_with_dirs(level: pathlib.Path, overrides: dict, mesh_dirs: list[str]):
-    """``check_level`` with ``mesh_dirs`` allowed as well (the folders of swapped-in mesh files)."""
-    import os  # noqa: PLC0415
-
-    from sandbox.levels import check_level  # noqa: PLC0415
-
-    old = os.environ.get("SANDBOX_MESH_DIRS")
-    if mesh_dirs:
-        os.environ["SANDBOX_MESH_DIRS"] = os.pathsep.join([*filter(None, [old]), *mesh_dirs])
-    try:
-        return check_level(level, overrides)
-    finally:
-        if mesh_dirs:
-            if old is None:
-                os.environ.pop("SANDBOX_MESH_DIRS", None)
-            else:
-                os.environ["SANDBOX_MESH_DIRS"] = old
-
-
 def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_base: pathlib.Path | None = None,
             source: str = "<sweep>", frames: int | None = None) -> list[Run]:
     """The runs of ``variants`` on one level, each checked as the level it makes.
@@ -504,7 +485,7 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
                 ok = False
         if not ok:
             continue
-        check = _check_with_dirs(level, overrides, mesh_dirs)
+        check = check_level(level, overrides, mesh_dirs=mesh_dirs)
         if check.errors:
             for e in check.errors:
                 problem(label, f"{e.path}: {e.message}")
