@@ -277,7 +277,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
             code = EXIT_ERROR
     signals.close()
     if world is not None:
-        world.close()  # frees its field tree: a process may run many levels (tools/sweep_level.py)
+        world.close()  # frees its field tree: a host process may run many levels
     return code, summary
 
 

@@ -18,6 +18,16 @@ def world_from_text(text: str):
     return w
 
 
+def shipped_world(level: str, overrides: dict | None = None):
+    """A World (with its FSM) of ``levels/<level>`` with dotted overrides (``{"fsm.1.with.pinch": True}``)."""
+    from sandbox.levels import load_level
+    from sandbox.world import World
+
+    w = World(load_level(ROOT / "levels" / level, overrides), base_dir=ROOT / "levels")
+    w.attach_fsm()
+    return w
+
+
 def run_shipped(level: str, overrides: dict | None = None) -> dict:
     """Run ``levels/<level>`` headless into a fresh folder, as shipped; its summary plus ``exit_code``.
 

@@ -306,22 +306,20 @@ def test_a_rope_folding_against_a_box_is_not_thrown():
 
 def _granny_draft_shifted(dx: float) -> str:
     """The granny draft's first recipe (tails drawn up; tests/data/levels/granny_draft_tails_up.yaml)
-    with its ropes, box, camera and pull targets moved dx (m) sideways."""
+    with its scene and pull targets moved dx (m) sideways."""
     import pathlib
-    import sys
 
-    import yaml
-
+    from sandbox.levels import yamlio
     from sandbox.levels.loader import apply_overrides
+    from sandbox.sweep.placement import placement_overrides
 
-    root = pathlib.Path(__file__).resolve().parents[1]
-    sys.path.insert(0, str(root / "tools"))
-    from sweep_level import shifted_scene
-
-    path = root / "tests" / "data" / "levels" / "granny_draft_tails_up.yaml"
-    level = yaml.safe_load(path.read_text())
-    apply_overrides(level, shifted_scene(path, (dx, 0.0, 0.0), ["C_TOWARD", "T_TOWARD"]))
-    return yaml.safe_dump(level, sort_keys=False)
+    path = pathlib.Path(__file__).resolve().parents[1] / "tests" / "data" / "levels" / "granny_draft_tails_up.yaml"
+    level = yamlio.parse(path.read_text()).data
+    call = level["fsm"][3]["with"]
+    overrides = placement_overrides(level, "scene", (dx, 0.0, 0.0))
+    overrides |= {f"fsm.3.with.{k}": [call[k][0] + dx, *call[k][1:]] for k in ("C_TOWARD", "T_TOWARD")}
+    apply_overrides(level, overrides)
+    return yamlio.dump(level)
 
 
 @pytest.mark.slow  # compiles the draft's kernels (a minute on 2 cores); the default run keeps the box fold above

@@ -351,55 +351,6 @@ def test_hold_rest_holds_the_end_state_and_records_every_frame(tmp_path, monkeyp
         plot_holds.plot_holds([other], ["a", "b"], out)
 
 
-def test_sweep_rigid_shift_moves_the_whole_scene_and_the_named_fsm_points(tmp_path):
-    """``sweep_level --rigid``: ropes, objects (and their keyframes), cloths, camera and the FSM points
-    named move together; nothing else does, and the shifted level still loads. A name no state has,
-    or a rope motion that turns about the origin, is an error. Criteria on several bodies keep one
-    column each."""
-    sys.path.insert(0, str(ROOT / "tools"))
-    from sweep_level import _label, shifted_ropes, shifted_scene
-
-    from sandbox.levels import load_level
-
-    path = ROOT / "tests" / "data" / "levels" / "granny_draft_tails_up.yaml"
-    base = load_level(path)
-    shift = (0.05, -0.02, 0.3)
-    ov = shifted_scene(path, shift, ["C_TOWARD", "T_TOWARD"])
-    moved = load_level(path, overrides=ov)
-    for a, b in zip(base.scene.ropes, moved.scene.ropes):
-        np.testing.assert_allclose(np.asarray(b.points) - np.asarray(a.points), np.tile(shift, (len(a.points), 1)))
-    np.testing.assert_allclose(np.subtract(moved.scene.objects[0].position, base.scene.objects[0].position), shift)
-    np.testing.assert_allclose(np.subtract(moved.scene.camera.look_at, base.scene.camera.look_at), shift)
-    np.testing.assert_allclose(np.subtract(moved.scene.camera.position, base.scene.camera.position), shift)
-    assert set(k for k in ov if k.startswith("fsm.")) == {"fsm.3.with.C_TOWARD", "fsm.3.with.T_TOWARD"}
-    assert ov["fsm.3.with.C_TOWARD"] == pytest.approx([0.12 + 0.05, 0.95 - 0.02, 0.3])
-    assert moved.scene.objects[0].params == base.scene.objects[0].params
-    with pytest.raises(ValueError, match="C_TOWARDS.*C_TOWARD"):
-        shifted_scene(path, shift, ["C_TOWARDS"])
-    # A moving object's keyframes move with it; a rope turned about the origin by its motion cannot.
-    import yaml
-
-    data = yaml.safe_load(path.read_text())
-    data["scene"]["objects"][0]["motion"] = {"keyframes": [{"time": 0.0, "position": [0, 0.34, 0]},
-                                                           {"time": 1.0, "position": [0.1, 0.34, 0]}]}
-    moving = tmp_path / "moving.yaml"
-    moving.write_text(yaml.safe_dump(data, sort_keys=False))
-    level = load_level(moving, overrides=shifted_scene(moving, shift, ["C_TOWARD", "T_TOWARD"]))
-    np.testing.assert_allclose([f.position for f in level.scene.objects[0].motion.keyframes],
-                               [np.add([0, 0.34, 0], shift), np.add([0.1, 0.34, 0], shift)])
-    data["scene"]["ropes"][0]["motion"] = {"keyframes": [{"time": 0.0, "position": [0, 0, 0]},
-                                                         {"time": 1.0, "position": [0, 0, 0], "rotation": [0, 30, 0]}]}
-    data["scene"]["ropes"][0]["pins"] = ["start"]
-    moving.write_text(yaml.safe_dump(data, sort_keys=False))
-    with pytest.raises(ValueError, match="turns about the world origin"):
-        shifted_scene(moving, shift, ["C_TOWARD", "T_TOWARD"])
-    # Without --rigid only the ropes move (self_knot-like scenes).
-    assert set(shifted_ropes(path, shift)) == {"scene.ropes.0.points", "scene.ropes.1.points"}
-    assert _label({"metric": "max_strain", "of": "A"}) == "max_strain[A]"
-    assert _label({"metric": "knot", "of": ["A", "B"]}) == "knot[A,B]"
-    assert _label({"metric": "fsm_state", "of": None}) == "fsm_state"
-
-
 def test_follow_frames_are_framed_on_the_rope(tmp_path, monkeypatch):
     """``follow`` reaches the recorder: every rendered frame asks the follower for its camera, at the distance given."""
     from sandbox.io import frames

@@ -18,7 +18,7 @@ from typing import Any
 import pydantic
 import yaml
 
-from sandbox.levels import checks, yamlio
+from sandbox.levels import checks, include, yamlio
 from sandbox.levels.diagnostics import Finding, convert
 from sandbox.levels.expand import expand
 from sandbox.levels.issues import LevelError, LevelIssue, LevelWarning, Severity, format_path, syntax_issue
@@ -37,11 +37,13 @@ class LevelCheck:
         level: the level, or None when there are errors.
         errors: problems that stop it from loading.
         warnings: problems that do not.
+        libraries: the macro library files it includes (resolved paths), in the order read.
     """
 
     level: Level | None
     errors: list[LevelIssue]
     warnings: list[LevelIssue]
+    libraries: list[pathlib.Path] = dataclasses.field(default_factory=list)
 
 
 def load_level(
@@ -161,11 +163,16 @@ def check_level_text(
     if not isinstance(doc.data, dict):
         findings.append(Finding((), "a level must be a mapping (version, name, scene, fsm, ...)"))
         return _result(None, findings, doc, source, set())
+    from sandbox.levels.limits import mesh_dirs as allowed_dirs  # noqa: PLC0415
+
+    extra = [*allowed_dirs(), *[pathlib.Path(d) for d in mesh_dirs]]
+    libs = include.gather(doc.data, base, extra)
+    findings += libs.findings
     overridden, problems = apply_overrides(doc.data, overrides or {})
     findings += problems
-    level, found = _validate(doc.data, base, registry, [pathlib.Path(d) for d in mesh_dirs])
+    level, found = _validate(doc.data, base, registry, extra)
     findings += found
-    return _result(level, findings, doc, source, overridden)
+    return _result(level, findings, doc, source, overridden, libs)
 
 
 def _validate(
@@ -181,9 +188,9 @@ def _validate(
     findings += checks.check_names(data)
     findings += checks.check_camera(data)
     findings += checks.check_sim(data)
-    from sandbox.levels.limits import Limits, mesh_dirs  # noqa: PLC0415
+    from sandbox.levels.limits import Limits  # noqa: PLC0415
 
-    findings += checks.check_objects(data, base_dir, [*mesh_dirs(), *extra_dirs])
+    findings += checks.check_objects(data, base_dir, extra_dirs)
     try:
         findings += checks.check_resources(data, Limits.from_env())
     except ValueError as exc:
@@ -217,20 +224,31 @@ def issues_from_findings(
     source: str,
     doc: yamlio.Document | None = None,
     overridden: set[yamlio.Path] | None = None,
+    origin: Mapping[str, include.Library] | None = None,
 ) -> list[LevelIssue]:
-    """Give findings their file positions, sorted by position.
+    """Give findings their file positions, sorted by file and position.
 
     Args:
         findings: the problems.
         source: the file name written in each issue.
         doc: the parsed document (without it, lines and columns are 0).
         overridden: document paths set by overrides (their problems say so).
+        origin: macro name -> the library it was included from: a problem
+            under ``macros.NAME`` is placed in that library's file.
     """
+    origin = origin or {}
+
+    def where(path: yamlio.Path) -> tuple[str, yamlio.Document | None]:
+        if len(path) >= 2 and path[0] == "macros" and path[1] in origin:
+            return origin[path[1]].source, origin[path[1]].doc
+        return source, doc
+
     out = []
     for f in findings:
         line = col = 0
-        if doc is not None:
-            _, mark = doc.locate(f.path, key=f.key)
+        file, fdoc = where(f.path)
+        if fdoc is not None:
+            _, mark = fdoc.locate(f.path, key=f.key)
             line, col = mark.line, mark.column
         message = f.message
         for opath in overridden or ():
@@ -240,12 +258,13 @@ def issues_from_findings(
         if f.trace:
             steps = []
             for label, tpath in f.trace:
-                if doc is not None:
-                    label += f" at line {doc.locate(tpath, key=True)[1].line}"
+                tfile, tdoc = where(tpath)
+                if tdoc is not None:
+                    label += f" at {tfile + ' ' if tfile != file else ''}line {tdoc.locate(tpath, key=True)[1].line}"
                 steps.append(label)
             message += f" ({'; '.join(steps)})"
-        out.append(LevelIssue(source, line, col, format_path(f.path), message, f.severity))
-    out.sort(key=lambda i: (i.line, i.column))
+        out.append(LevelIssue(file, line, col, format_path(f.path), message, f.severity))
+    out.sort(key=lambda i: (i.file != source, i.file, i.line, i.column))
     return out
 
 
@@ -255,11 +274,13 @@ def _result(
     doc: yamlio.Document,
     source: str,
     overridden: set[yamlio.Path],
+    libs: include.Included | None = None,
 ) -> LevelCheck:
-    issues = issues_from_findings(findings, source, doc, overridden)
+    libs = libs or include.Included()
+    issues = issues_from_findings(findings, source, doc, overridden, libs.origin) + libs.issues
     errors = [i for i in issues if i.severity is Severity.ERROR]
     warns = [i for i in issues if i.severity is Severity.WARNING]
-    return LevelCheck(None if errors else level, errors, warns)
+    return LevelCheck(None if errors else level, errors, warns, [lib.path for lib in libs.libraries])
 
 
 def apply_overrides(

@@ -585,13 +585,19 @@ class Macro(_Model):
 
 
 class Level(_Model):
-    """A level: a scene, how to simulate it, and the FSM of maneuvers to run."""
+    """A level: a scene, how to simulate it, and the FSM of maneuvers to run.
+
+    ``include`` names macro library files (``sandbox/levels/include.py``): the
+    loader reads them and puts their macros in ``macros``, so the ``include``
+    of a loaded level is empty.
+    """
 
     version: Literal[1]
     name: Str
     description: Str = ""
     scene: Scene
     sim: Sim = Sim()
+    include: list[Str] = []
     macros: dict[Str, Macro] = {}
     fsm: FSM
     success: list[Criterion] = []

@@ -127,7 +127,7 @@ class Run:
             sweep skips ids it has a row for.
         level: absolute path of the level file.
         level_name: the level's ``name``.
-        level_sha: first 12 hex digits of the SHA-1 of the level file.
+        level_sha: first 12 hex digits of the SHA-1 of the level file and the macro libraries it includes.
         variant: axis key -> value as written (JSON-able).
         label: the variant in words.
         overrides: dotted level keys -> values that make the variant.
@@ -417,10 +417,13 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
     level = pathlib.Path(level).resolve()
     base = pathlib.Path(sweep_base or pathlib.Path.cwd())
     raw = level.read_bytes()
-    sha = hashlib.sha1(raw).hexdigest()[:12]
     first = check_level(level)
     if first.errors:
         raise SweepError(first.errors)
+    digest = hashlib.sha1(raw)
+    for library in first.libraries:  # a macro library's change is the level's change
+        digest.update(library.read_bytes())
+    sha = digest.hexdigest()[:12]
     name = first.level.name
     data = yamlio.parse(raw.decode("utf-8")).data
     full = yaml.safe_load(dump_level(first.level, defaults=True))  # the level's values, defaults included
