@@ -270,14 +270,20 @@ def test_insert_point_on_edge_splits_both_faces():
     assert (F2 == vid).any(axis=1).sum() == 4
 
 
-def test_between_rejects_points_on_separate_parts():
-    """Points on two disjoint boxes have no geodesic: a clear ValueError."""
+def test_a_mesh_of_separate_parts_is_joined_by_its_hull():
+    """Two disjoint boxes: no geodesic leads from one to the other on the mesh, so the surface is their
+    convex hull, and says why. Between the tops the geodesic is then the straight line across the hull's
+    flat top (closed form: 3 m); a one-part mesh keeps its own surface."""
     a = trimesh.creation.box()
     b = trimesh.creation.box()
     b.apply_translation([3.0, 0.0, 0.0])
     g = SurfaceGeodesics(trimesh.util.concatenate([a, b]), target_edge=0.5)
-    with pytest.raises(ValueError, match="different connected parts"):
-        g.between([0.0, 0.5, 0.0], [3.0, 0.5, 0.0])
+    assert g.is_hull and "2 separate parts" in g.hull_reason
+    line = g.between([0.0, 0.5, 0.0], [3.0, 0.5, 0.0])
+    assert polyline_length(line) == pytest.approx(3.0, rel=1e-9)
+    np.testing.assert_allclose(line[:, 1], 0.5, atol=1e-12)
+    one = SurfaceGeodesics(a, target_edge=0.5)
+    assert not one.is_hull and one.hull_reason == ""
 
 
 def test_resample_and_polyline_distance():

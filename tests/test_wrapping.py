@@ -246,3 +246,46 @@ def test_overlap_criteria_need_a_wrap():
 def test_wrap_levels_reach_their_criteria_headless(level):
     s = _run(level)
     assert s["success"] and s["exit_code"] == 0, s.get("criteria") or s.get("message")
+
+
+def test_a_line_under_the_object_is_seen():
+    """``_runs_under``: a line up a box's side and over its top is not under it; one that runs on along the
+    box's bottom face (normal straight down) is, and so is one under a torus's tube."""
+    from sandbox.maneuvers.wrapping import _runs_under
+
+    box = SurfaceGeodesics(trimesh.creation.box(extents=[1.0, 1.0, 1.0]), target_edge=0.2)
+    up_and_over = np.array([[0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [0.0, 0.5, 0.0]])
+    assert not _runs_under(box, up_and_over)
+    under = np.array([[0.5, -0.4, 0.0], [0.5, -0.5, 0.0], [0.0, -0.5, 0.0], [-0.4, -0.5, 0.0]])
+    assert _runs_under(box, under)
+    ring = trimesh.creation.torus(major_radius=0.3, minor_radius=0.1)
+    ring.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # axis z -> y
+    torus = SurfaceGeodesics(ring, target_edge=0.03)
+    t = np.linspace(0.0, np.pi, 20)
+    below = np.stack([0.3 + 0.1 * np.cos(t), -0.1 * np.sin(t), 0 * t], axis=1)  # outer side, under the tube, inner side
+    above = below * [1, -1, 1]
+    assert _runs_under(torus, below) and not _runs_under(torus, above)
+
+
+@pytest.mark.parametrize("want", [[1.0, -0.5, 0.2], [0.0, -1.0, 0.0], [0.3, 0.0, -1.0], [0.6, 0.8, 0.0]])
+def test_the_free_part_never_turns_into_the_ground(want):
+    """``_clear_of_ground``: whatever direction the free part is asked to take, its end stays a cloth
+    half-thickness above the ground; a direction that already does is kept, and a lifted one keeps its
+    heading (invariants)."""
+    from types import SimpleNamespace
+
+    from sandbox.maneuvers.wrapping import Wrapping, _arc
+
+    O = np.array([[0.0, 0.01, 0.0], [0.1, 0.01, 0.0]])
+    line = SimpleNamespace(O=O, sO=_arc(O), c=0.0, u=np.array([1.0, 0.0, 0.0]))
+    m = SimpleNamespace(world=SimpleNamespace(ground_height=0.0), r=0.005, step=0.0025)
+    want = np.asarray(want, float) / np.linalg.norm(want)
+    free = 0.4
+    got = Wrapping._clear_of_ground(m, line, want, free)
+    assert np.linalg.norm(got) == pytest.approx(1.0)
+    assert O[0, 1] + free * got[1] >= m.r - 1e-12
+    if O[0, 1] + free * want[1] >= m.r:
+        np.testing.assert_array_equal(got, want)
+    elif np.hypot(want[0], want[2]) > 1e-9:
+        heading = np.array([want[0], 0, want[2]]) / np.hypot(want[0], want[2])
+        assert np.array([got[0], 0, got[2]]) @ heading == pytest.approx(np.hypot(got[0], got[2]))

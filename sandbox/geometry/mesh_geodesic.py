@@ -52,8 +52,14 @@ class SurfaceGeodesics:
     20k faces); end points within 0.1% of the mean edge of a vertex or an
     edge snap onto it.
 
+    A mesh of several separate parts (a basket and its handle, a car and its
+    wheels) is replaced by its convex hull, which joins them: a geodesic
+    cannot pass from one part to another. ``hull_reason`` then says so.
+
     Attributes:
         mesh: The prepared mesh (world space, m).
+        hull_reason: why the hull is used although ``hull`` was False ("" if it is not).
+        is_hull: whether the surface is a convex hull (asked for, or for ``hull_reason``).
         mean_edge: Mean edge length of the prepared mesh (m).
         diagonal: Bounding-box diagonal (m).
     """
@@ -69,6 +75,14 @@ class SurfaceGeodesics:
             target_edge: Longest edge after refinement (m); None: diagonal / 40.
         """
         self.mesh = prepare_mesh(mesh, hull=hull, target_edge=target_edge)
+        self.hull_reason = ""
+        self.is_hull = bool(hull)
+        parts = 1 if hull else _parts(self.mesh)
+        if parts > 1:  # a geodesic cannot go from one part to another: the parts are merged by their hull
+            self.hull_reason = (f"the mesh is {parts} separate parts; its target lines follow the convex hull "
+                                "that joins them")
+            self.mesh = prepare_mesh(mesh, hull=True, target_edge=target_edge)
+            self.is_hull = True
         self._V = np.ascontiguousarray(self.mesh.vertices, dtype=np.float64)
         self._F = np.ascontiguousarray(self.mesh.faces, dtype=np.int64)
         self._normals = np.asarray(self.mesh.face_normals, dtype=np.float64)
@@ -372,6 +386,12 @@ class SurfaceGeodesics:
             touched += changed
             ids.append(vid)
         return np.ascontiguousarray(V), np.ascontiguousarray(F), ids
+
+
+def _parts(mesh: trimesh.Trimesh) -> int:
+    """Connected parts of a prepared mesh (through its edges)."""
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    return int(connected_components(surface_graph(V, np.asarray(mesh.faces, dtype=np.int64)), directed=False)[0])
 
 
 # ---------------------------------------------------------------------- polylines

@@ -136,7 +136,7 @@ class FSMRunner:
             self.durations[scope.name] = self.durations.get(scope.name, 0) + 1
 
         if status is Status.DONE:
-            self._leave(EventType.DONE, flat.name, flat.on["done"])
+            self._leave(EventType.DONE, flat.name, flat.on["done"], self._maneuver.note)
         elif status is Status.FAILED:
             self._leave(EventType.FAILED, flat.name, flat.on["failed"], self._maneuver.message)
         elif flat.timeout is not None and self._ticks_in_state >= flat.timeout:

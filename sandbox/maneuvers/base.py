@@ -33,7 +33,9 @@ class Maneuver:
     """One maneuver instance, created when its FSM state is entered.
 
     Subclasses set ``name`` and ``Params`` and implement ``start`` and
-    ``update``. ``progress`` is in [0, 1] and ``message`` explains a failure.
+    ``update``. ``progress`` is in [0, 1], ``message`` explains a failure and
+    ``note`` records a choice the maneuver made for itself (written on the
+    state's ``done`` event).
     """
 
     name: ClassVar[str] = ""
@@ -44,6 +46,7 @@ class Maneuver:
         self.world = world
         self.progress = 0.0
         self.message = ""
+        self.note = ""
         self.ticks = 0
 
     def start(self) -> None:

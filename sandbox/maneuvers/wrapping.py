@@ -66,6 +66,17 @@ def surface(world, name: str, hull: bool):
     return geo
 
 
+def _runs_under(geo, G: np.ndarray) -> bool:
+    """Whether target line G, past its first tenth, runs over surface that faces the ground (normal more than
+    60 degrees below the horizontal): under an overhang, or under the object where it rests on the cloth."""
+    arc = _arc(G)
+    far = arc > 0.1 * arc[-1]
+    if not far.any():
+        return False
+    _, face, _ = geo.project(G[far])
+    return bool((geo._normals[face] @ UP < -0.5).any())
+
+
 def offset_line(geo, line: np.ndarray, r: float) -> np.ndarray:
     """Offset a surface polyline outward by ``r`` (m), rounding convex edges.
 
@@ -150,7 +161,12 @@ class WrapParams(Params):
             the control line's length.
         turns: expected turns about the vertical through the object (picks the
             route of a traced line that must end at ``to``).
-        hull: target lines on the object's convex hull instead of its surface.
+        hull: target lines on the object's convex hull for every line, for a
+            taut wrap that bridges each concavity. Without it the lines follow
+            the surface, and the hull only where they must: an object of
+            several separate parts (a car and its wheels), or a line that on
+            the surface would run under the object (an overhang, a torus's
+            inner side); the state's ``done`` event says which.
         beyond: what the part of a control line longer than its target line
             does: ``surface`` follows the surface geodesic on; ``up`` stands up
             along the surface normal at ``to`` (corners gathered for a knot).
@@ -288,7 +304,7 @@ class Wrapping(Maneuver):
         self.step = 0.5 * min(cloth.spacing)
         self.tol = p.tolerance if p.tolerance is not None else 0.5 * cloth.thickness
         geo = surface(w, p.object, p.hull)
-        self.geo = geo
+        notes = [f"object {p.object!r}: {geo.hull_reason}"] if geo.hull_reason else []
         k_obj = w.object_index(p.object)
         verts_lo = np.asarray(w.objects.world_mesh(k_obj)[0]).min(axis=0)
         x = w.positions().astype(np.float64)
@@ -326,11 +342,21 @@ class Wrapping(Maneuver):
                 self.lines = []
                 return
             length = rest_arc[-1] - rest_arc[i0]
+            line_geo = geo
             G = self._target_line(geo, x[idx[i0]], q, length, corner)
+            if not geo.is_hull and _runs_under(geo, G):
+                # Cloth cannot lie under the object: where the surface's
+                # line would, the line follows the hull, which bridges the
+                # underside (a torus's inner side, an arm's overhang).
+                line_geo = surface(w, p.object, True)
+                q_hull = None if q is None else line_geo.project(resolve_target(w, p.to))[0][0]
+                G = self._target_line(line_geo, x[idx[i0]], q_hull, length, corner)
+                notes.append(f"{what}: on the surface its target line ran under {p.object!r}; it follows the "
+                             "convex hull")
             # The line starts at the contact particle itself, so that its
             # link to the held part of the cloth keeps its length.
-            O = offset_line(geo, G, self.r * 1.05)
-            N = O - geo.project(O)[0]
+            O = offset_line(line_geo, G, self.r * 1.05)
+            N = O - line_geo.project(O)[0]
             N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
             # The cloth comes out from under the object: the target line
             # starts where the surface stops facing the ground.
@@ -363,6 +389,7 @@ class Wrapping(Maneuver):
             u0 = x[idx[-1]] - x[idx[i0]]
             u0 /= max(np.linalg.norm(u0), 1e-12)
             self.lines.append(_Line(corner, idx, rest_arc, i0, G, O, N, c_end, aim, u0))
+        self.note = "; ".join(notes)
         self.cmd = {ln.corner: x[ln.driven].copy() for ln in self.lines}
         self.released_at = None  # tick at which ``hold: end`` let the laid particles go
         self.total = sum(ln.c_end for ln in self.lines) or 1.0
@@ -466,9 +493,12 @@ class Wrapping(Maneuver):
         inc = 0.5 * self.step
         while True:
             want = ln.desired(ln.c, self.step)
-            if ln.u @ want < 0.0:  # a wide turn goes the outside way, through the surface normal
-                want = _at(ln.N, ln.sO, ln.c)
-                want = want / max(np.linalg.norm(want), 1e-12)
+            if ln.u @ want < 0.0:  # a wide turn goes the outside way: towards the surface normal first
+                normal = _at(ln.N, ln.sO, ln.c)
+                normal = normal / max(np.linalg.norm(normal), 1e-12)
+                half = normal + want  # halfway from the normal to the line: never a turn back along the ground
+                want = half / np.linalg.norm(half) if np.linalg.norm(half) > 0.5 else normal
+            want = self._clear_of_ground(ln, want, free)
             ln.u, left = _rotate_towards(ln.u, want, rot)
             if left > 0.0:
                 return
@@ -479,6 +509,32 @@ class Wrapping(Maneuver):
             ln.c += dc
             arc -= dc
             free = max(float(ln.s[-1] - ln.c), self.step)
+
+    def _clear_of_ground(self, ln: _Line, want: np.ndarray, free: float) -> np.ndarray:
+        """``want``, tilted up where the free part along it would dip below the ground.
+
+        The free part is straight from the contact: its end stays a cloth
+        half-thickness above the ground when its direction rises at least
+        ``need`` = (ground + r - contact height) / free length. A direction
+        below that keeps its heading and rises just enough. Both the free
+        part's direction and ``want`` then lie above that cone, and so does
+        every direction the turn between them passes (the shorter arc
+        between two directions of a spherical cap stays in it), so the free
+        part never turns into the ground, under an overhang or a bulge
+        either.
+        """
+        gh = self.world.ground_height
+        if gh is None:
+            return want
+        base = _at(ln.O, ln.sO, ln.c)
+        need = float(np.clip((gh + self.r - base[1]) / max(free, self.step), -1.0, 1.0))
+        if want[1] >= need:
+            return want
+        heading = np.array([want[0], 0.0, want[2]])
+        if np.linalg.norm(heading) < 1e-9:
+            heading = np.array([ln.u[0], 0.0, ln.u[2]])
+        heading /= max(np.linalg.norm(heading), 1e-12)
+        return heading * np.sqrt(1.0 - need * need) + UP * need
 
     def _overlap(self, ln: _Line, x: np.ndarray) -> tuple[float, float]:
         """Mean and max distance (m) of the laid particles from the target line O."""
