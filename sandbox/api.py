@@ -139,10 +139,10 @@ class Sandbox:
         return self.world.rope_positions(name)
 
     def rope_radius(self, name: str) -> float:
-        return self.world._rope(name).radius
+        return self.world.rope(name).radius
 
     def rope_color(self, name: str) -> tuple[float, float, float]:
-        return self.world._rope(name).color
+        return self.world.rope(name).color
 
     def cloth_positions(self, name: str) -> np.ndarray:
         """(nx * nz, 3) float32 positions of a cloth (m); particle (i, j) at j * nx + i."""
@@ -150,14 +150,14 @@ class Sandbox:
 
     def cloth_faces(self, name: str) -> np.ndarray:
         """(m, 3) int32 triangles of a cloth, indices into ``cloth_positions``."""
-        return self.world._cloth(name).faces
+        return self.world.cloth(name).faces
 
     def cloth_shape(self, name: str) -> tuple[int, int]:
-        c = self.world._cloth(name)
+        c = self.world.cloth(name)
         return c.nx, c.nz
 
     def cloth_colors(self, name: str) -> tuple[tuple, tuple]:
-        c = self.world._cloth(name)
+        c = self.world.cloth(name)
         return c.color, c.back_color
 
     def object_mesh(self, name: str) -> tuple[np.ndarray, np.ndarray]:

@@ -16,6 +16,7 @@ import numpy as np
 from sandbox import runtime
 from sandbox.model.builder import ClothRange, ModelBuilder, RopeRange
 from sandbox.model.pose import euler_matrix, keyframe_pose
+from sandbox.record import ManeuverRecord
 
 
 def _rod_frame(direction: np.ndarray, e2_prev: np.ndarray | None):
@@ -35,6 +36,7 @@ STRAIN_BLOWUP = 4.0
 
 class SimulationUnstable(RuntimeError):
     """The step kept producing NaN or exploding velocities after every retry."""
+
 
 
 class _Closed:
@@ -72,6 +74,8 @@ class World:
         self.explode_speed = 200.0  # m/s: faster than anything a level should do
         scene = level.scene
         self.ground_height = None if scene.ground is None else float(scene.ground.height)
+        self.record = ManeuverRecord()  # what maneuvers record for later ones and for the criteria
+        self.surfaces: dict = {}  # (object, hull) -> (pose, SurfaceGeodesics): geodesic surfaces at a pose
 
         from sandbox.model.model import Model
         from sandbox.solvers.xpbd import XPBDSolver
@@ -159,11 +163,11 @@ class World:
 
     # ---------------------------------------------------------- read-back
     def rope_positions(self, name: str) -> np.ndarray:
-        r = self._rope(name)
+        r = self.rope(name)
         return self.state.x.to_numpy()[r.start : r.end]
 
     def cloth_positions(self, name: str) -> np.ndarray:
-        c = self._cloth(name)
+        c = self.cloth(name)
         return self.state.x.to_numpy()[c.start : c.end]
 
     def positions(self) -> np.ndarray:
@@ -174,7 +178,7 @@ class World:
         """All particle velocities (n, 3) float32, m/s."""
         return self.state.v.to_numpy()
 
-    def _rope(self, name: str) -> RopeRange:
+    def rope(self, name: str) -> RopeRange:
         """A rope, or a strand of one: ``"R"`` or ``"R[i0:i1]"`` (see ``sandbox.model.strands``)."""
         from sandbox.model.strands import parse_strand, strand_range
 
@@ -183,7 +187,7 @@ class World:
             raise KeyError(f"no rope named {base!r}; ropes: {', '.join(self.ropes) or '(none)'}")
         return self.ropes[base] if base == name else strand_range(self.ropes[base], name)
 
-    def _cloth(self, name: str) -> ClothRange:
+    def cloth(self, name: str) -> ClothRange:
         if name not in self.cloths:
             raise KeyError(f"no cloth named {name!r}; cloths: {', '.join(self.cloths) or '(none)'}")
         return self.cloths[name]
@@ -201,7 +205,7 @@ class World:
         ``line1``-``line4`` (a control line) or an area ``a``-``d`` (the quadrant of that corner).
         """
         if body in self.ropes or "[" in body:
-            r = self._rope(body)  # a rope or a strand R[i0:i1]; indices count from the strand's start
+            r = self.rope(body)  # a rope or a strand R[i0:i1]; indices count from the strand's start
             k = r.end - r.start
             if site == "start":
                 return np.array([r.start])
@@ -510,8 +514,8 @@ class World:
     def body_scale(self, name: str) -> float:
         """Length scale of a body for relative penetration: rope radius or cloth thickness (m)."""
         if name in self.ropes or "[" in name:
-            return self._rope(name).radius
-        return self._cloth(name).thickness
+            return self.rope(name).radius
+        return self.cloth(name).thickness
 
     def pin_drift(self) -> float:
         """Largest distance of a driven particle from its target at frame end (m)."""

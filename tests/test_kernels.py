@@ -509,7 +509,7 @@ def test_rope_contact_next_to_held_particles_moves_a_particle_at_most_a_rod(mode
     from sandbox.collision.ropecollision import THROW
 
     w = _world(LEVER.replace("X", str(x_cross)).replace("MODE", mode))
-    a = w._rope("A")
+    a = w.rope("A")
     x0 = w.positions().astype(np.float64)
     w.solver.begin_frame()
     w.solver.ropecol.solve()
@@ -521,7 +521,7 @@ def test_rope_contact_next_to_held_particles_moves_a_particle_at_most_a_rod(mode
     np.testing.assert_allclose(np.linalg.norm(step), THROW * 0.01, rtol=1e-5)
     # Away from B (its axis is 7 mm in +z; A's segment before also touches B's end, hence a little -x).
     assert step[2] < -0.95 * np.linalg.norm(step) and abs(step[1]) < 1e-6
-    held = [a.start, a.end - 1] + list(range(w._rope("B").start, w._rope("B").end))
+    held = [a.start, a.end - 1] + list(range(w.rope("B").start, w.rope("B").end))
     np.testing.assert_array_equal(x1[held], x0[held])
 
 

@@ -22,7 +22,7 @@ def test_crossing_contact_spread_carries_the_bottoms_apart_within_reach():
     w = _world(TOUCHING_SLACK)
     w.step()
     m = w.fsm._maneuver
-    a, b = w._rope("A"), w._rope("B")
+    a, b = w.rope("A"), w.rope("B")
     bases = [idx for idx, _, ways in m.moves if len(ways) == 1]  # the carried bottoms: C's (B), then T's (A)
     goals = [ways[0] for _, _, ways in m.moves if len(ways) == 1]
     assert len(bases) == 2
@@ -60,7 +60,7 @@ def test_crossing_contact_spread_on_taut_ropes_keeps_the_bottoms_within_reach():
     w.step()
     m = w.fsm._maneuver
     x0 = w.positions().astype(np.float64)
-    tips = [w._rope("B").end - 1, w._rope("A").end - 1]
+    tips = [w.rope("B").end - 1, w.rope("A").end - 1]
     carried = [(idx, ways[0]) for idx, _, ways in m.moves if len(ways) == 1]
     for (base, goal), contact, tip in zip(carried, m.contacts, tips):
         lifted = x0[tip] + m.params.lift * np.array([0.0, 1.0, 0.0])
@@ -155,7 +155,7 @@ def test_straightened_run_stops_short_of_a_held_particle_it_cannot_reach():
     cut back on that side instead (and by a rod on the other, where T is taut to its pinned start),
     and no rod of T stretches."""
     w = _world(BENT)
-    t = w._rope("T")
+    t = w.rope("T")
     w.step()
     m = w.fsm._maneuver
     assert m.j0 == 25
@@ -199,7 +199,7 @@ def test_crossing_keeps_its_tips_within_reach_of_particles_other_hands_hold():
     """Hands hold A and B three rods below their tips: the Crossing moves each tip only as far as that
     rope reaches, nothing stretches, and as the strands then cannot meet, the failure names the holds."""
     w = _world(HELD_NEAR_TIP)
-    a = w._rope("A")
+    a = w.rope("A")
     tip, held = a.end - 1, a.start + 22
     w.step()  # A's Anchoring: the hands hold where the particles are
     hand, tip0 = w.control.target([held])[0], w.control.target([tip])[0]
@@ -214,7 +214,7 @@ def test_crossing_keeps_its_tips_within_reach_of_particles_other_hands_hold():
     worst = 0.0
     for _ in range(400):
         w.step()
-        for r in (a, w._rope("B")):
+        for r in (a, w.rope("B")):
             seg = np.linalg.norm(np.diff(w.positions()[r.start:r.end], axis=0), axis=1)
             worst = max(worst, float(np.abs(seg / 0.02 - 1).max()))
         if w.fsm.finished:
@@ -232,7 +232,7 @@ def test_straightened_run_keeps_a_rod_to_a_held_particle_next_to_it_at_its_lengt
     would be compressed or stretched between two held particles, so the run stops one particle earlier;
     within that it reaches 30. Where the hand holds 31 counts, not where 31 is on its way there."""
     w = _world(BENT)
-    t = w._rope("T")
+    t = w.rope("T")
     w.step()
     m = w.fsm._maneuver
     assert m.j0 == 25 and w.control.is_driven([t.start + 31])[0]

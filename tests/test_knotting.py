@@ -10,6 +10,7 @@ from sandbox.geometry.tube import smooth_axis
 from sandbox.levels import LevelError, load_level_from_string
 from sandbox.maneuvers.knotting import closest_approach, crossing_targets, knot_exit
 from sandbox.model.strands import parse_strand
+from sandbox.record import WindingRecord
 
 import sandbox.maneuvers  # noqa: F401
 from tests.levelkit import world_from_text as _world
@@ -50,14 +51,14 @@ success:
 def test_strands_index_into_their_rope():
     w = _world(ONE_ROPE)
     assert len(w.rope_positions("R")) == 11
-    part = w._rope("R[2:5]")
+    part = w.rope("R[2:5]")
     assert (part.start, part.end, part.name) == (2, 5, "R[2:5]")
     np.testing.assert_array_equal(w.rope_positions("R[-3:]"), w.rope_positions("R")[-3:])
     np.testing.assert_array_equal(w.site_particles("R[4:]", "start"), [4])
     with pytest.raises(ValueError, match="at least 2"):
-        w._rope("R[5:6]")
+        w.rope("R[5:6]")
     with pytest.raises(KeyError, match="no rope named 'Q'"):
-        w._rope("Q[1:3]")
+        w.rope("Q[1:3]")
 
 
 def test_criterion_on_unknown_strand_rope_is_a_level_error():
@@ -165,7 +166,7 @@ def test_crossing_two_ropes_makes_a_crossing_of_the_asked_sign(sign):
             break
     assert w.fsm.succeeded, w.fsm.events
     a, b = w.rope_positions("A"), w.rope_positions("B")
-    x = w.crossings[("A", "B")]
+    x = w.record.crossings[("A", "B")]
     assert 0.3 < x[1] < 0.6  # above the held bottoms
     # Tips have swapped sides along x, and where they pass A is on the asked z side of B.
     assert a[-1, 0] > 0.0 > b[-1, 0]
@@ -247,7 +248,7 @@ def test_crossing_is_found_between_the_bottoms_and_the_tips():
         if w.fsm.finished:
             break
     assert w.fsm.succeeded, w.fsm.events
-    x = w.crossings[("B", "A")]
+    x = w.record.crossings[("B", "A")]
     assert x[1] > 0.3 + 0.06, x  # up where the strands cross, not at the held ends (0.02 m apart)
     assert abs(x[0]) < 0.05
 
@@ -491,7 +492,7 @@ def test_crossing_contact_offset_pinches_each_strand_out_of_the_contact():
 
     w = _world(TOUCHING.replace("OFFSET", "0.05"))
     x = w.positions().astype(np.float64)
-    a, b = w._rope("A"), w._rope("B")
+    a, b = w.rope("A"), w.rope("B")
     exits = [knot_exit(x, r, [a, b], r.end - 1) for r in (a, b)]
     assert all(e is not None for e in exits)
     w.step()
@@ -592,7 +593,7 @@ def test_tightening_push_moves_the_wound_part_toward_its_point_and_lets_go():
         w.step()
     n = len(w.rope_positions("R"))
     wound = np.arange(n // 2 - 2, n // 2 + 3)
-    w.windings = {("R", "R"): {"particles": wound, "x_hat": np.array([1.0, 0.0, 0.0])}}
+    w.record.windings[("R", "R")] = WindingRecord(wound, np.array([1.0, 0.0, 0.0]))
     while w.fsm.state != "2:Tightening":
         w.step()
     z0 = w.positions()[wound, 2].mean()

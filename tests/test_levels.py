@@ -176,8 +176,8 @@ def test_the_documented_example_level_is_valid():
     """The level that opens docs/levels.md loads, with every sim key it lists."""
     readme = (pathlib.Path(__file__).resolve().parents[1] / "docs" / "levels.md").read_text()
     text = re.search(r"```yaml\n(version: 1\n.*?)```", readme, re.S).group(1)
-    level = load_level_from_string(text)
-    listed = set(re.findall(r"(\w+):", text[text.index("\nsim:"):text.index("\nmacros:")])) - {"sim"}
+    level = load_level_from_string(text, base_dir=pathlib.Path(__file__).resolve().parents[1] / "levels")
+    listed = set(re.findall(r"(\w+):", text[text.index("\nsim:"):text.index("\ninclude:")])) - {"sim"}
     assert listed == set(type(level.sim).model_fields), "the example lists every sim key, and only those"
 
 

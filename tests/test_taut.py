@@ -69,7 +69,7 @@ def test_taut_stretch_matches_the_closed_form_and_the_numpy_reference():
     x = w.positions().astype(np.float64)
     inv = solver_masses(w)
     ref_taut, ref_normal, ref_room = _reference(x, w.data.x0.astype(np.float64), inv, w.data.ropes)
-    v, s, f = (w._rope(n) for n in "VSF")
+    v, s, f = (w.rope(n) for n in "VSF")
     # Closed form: the V's middle particle lies on the spheroid (both halves straight): fully taut,
     # its outward normal the bisector of the two halves, straight down (float32 lengths: e is 1 to
     # about 1e-4, a tenth of 1 - TAUT); the slack and the free rope: none.
@@ -112,7 +112,7 @@ fsm:
 
 def test_a_rope_drawn_across_a_taut_held_rope_wraps_it_and_the_taut_rope_swings_but_does_not_stretch():
     w = _world(DRAWN)
-    t, c = w._rope("T"), w._rope("C")
+    t, c = w.rope("T"), w.rope("C")
     worst_t = worst_c = swing = 0.0
     gap = np.inf
     for _ in range(90):
@@ -151,7 +151,7 @@ def test_a_contact_pass_moves_a_taut_stretch_no_further_out_than_its_room():
     fraction of a millimetre of room; one contact pass moves no V particle out by more than its room
     (without the cap the apex would take millimetres), and the others no further than a rod."""
     w = _world(PRESSED)
-    v = w._rope("V")
+    v = w.rope("V")
     taut, normal, room = _taut_fields(w)
     x0 = w.positions().astype(np.float64)
     w.solver.ropecol.solve()

@@ -164,7 +164,7 @@ def test_rope_wind_moving_reaches_its_criteria_headless():
 
 def _wind_with_tail(carry: float):
     w = _shipped_world("rope_wind.yaml", {"fsm.1.with.carry_tail": carry})
-    tip = w._rope("C").end - 1
+    tip = w.rope("C").end - 1
     held = []
     while w.fsm.state != "2:Wait" and not w.fsm.finished:
         w.step()
@@ -179,8 +179,8 @@ def test_winding_carries_the_tail_along_the_geodesic_tangent():
     assert w.fsm.state == "2:Wait", w.fsm.events
     assert held and all(held)
     x = w.positions().astype(np.float64)
-    c = w._rope("C")
-    last = max(int(i) for i in w.windings[("C", "T")]["particles"])
+    c = w.rope("C")
+    last = max(int(i) for i in w.record.windings[("C", "T")].particles)
     left = (tip - last) * c.rod_length
     out = x[tip] - x[last]
     # Held out by half the tail's length (within the rate limit's lag and the last target's tolerance).
@@ -233,7 +233,7 @@ def test_winding_exit_lays_the_tail_straight_out_of_the_turns(square):
     np.testing.assert_allclose(x[exit_particles[-1]], line[-1], atol=0.25 * m.c.rod_length)
     assert w.control.is_driven([exit_particles[-1]])[0] and not w.control.is_driven(exit_particles[1:-1]).any()
     # The knot's record (Tightening pulls away from its centre) is the turns alone.
-    rec = w.windings[("C", "T")]["particles"]
+    rec = w.record.windings[("C", "T")].particles
     assert rec.max() == m._particle(turns - 1) and rec.min() == m._particle(0)
 
 

@@ -103,7 +103,7 @@ def test_wrapping_lays_two_corners_over_the_box_and_keeps_the_held_cloth_put():
     for corner in "AC":
         assert w.positions()[w.cloths["cloth"].site(corner)][1] > top + 0.02
     # Particles under the box (held by Anchoring, not on a control line) did not move.
-    lines = np.concatenate([w.wraps[("cloth", k)]["particles"] for k in "AC"])
+    lines = np.concatenate([w.record.wraps[("cloth", k)].particles for k in "AC"])
     keep = ~np.isin(held0[0], lines)
     np.testing.assert_allclose(w.positions()[held0[0][keep]], held0[1][keep], atol=1e-6)
 
@@ -151,8 +151,8 @@ def test_a_line_given_by_two_points_is_laid_like_the_corner_line_it_names():
     by_corner = _wrap_to_end(SMALL.replace("corners: [A, C]", "corners: [A]"))
     by_points = _wrap_to_end(SMALL.replace("corners: [A, C]", "lines: [[center, A]]"))
     assert by_corner.fsm.state == by_points.fsm.state == "success"
-    np.testing.assert_array_equal(by_points.wraps[("cloth", "center-A")]["particles"],
-                                  by_corner.wraps[("cloth", "A")]["particles"])
+    np.testing.assert_array_equal(by_points.record.wraps[("cloth", "center-A")].particles,
+                                  by_corner.record.wraps[("cloth", "A")].particles)
     np.testing.assert_array_equal(by_points.positions(), by_corner.positions())
 
 

@@ -60,6 +60,7 @@ class SurfaceGeodesics:
         mesh: The prepared mesh (world space, m).
         hull_reason: why the hull is used although ``hull`` was False ("" if it is not).
         is_hull: whether the surface is a convex hull (asked for, or for ``hull_reason``).
+        face_normals: (m, 3) outward unit normal of each face of ``mesh``.
         mean_edge: Mean edge length of the prepared mesh (m).
         diagonal: Bounding-box diagonal (m).
     """
@@ -85,7 +86,7 @@ class SurfaceGeodesics:
             self.is_hull = True
         self._V = np.ascontiguousarray(self.mesh.vertices, dtype=np.float64)
         self._F = np.ascontiguousarray(self.mesh.faces, dtype=np.int64)
-        self._normals = np.asarray(self.mesh.face_normals, dtype=np.float64)
+        self.face_normals = np.asarray(self.mesh.face_normals, dtype=np.float64)
         self.mean_edge = float(self.mesh.edges_unique_length.mean())
         self.diagonal = float(np.linalg.norm(self.mesh.extents))
         self.centre = np.asarray(self.mesh.bounds, dtype=np.float64).mean(axis=0)
@@ -198,7 +199,7 @@ class SurfaceGeodesics:
         _, face, bary = self.project(p)
         f = int(face[0])
         t = np.asarray(tangent, dtype=np.float64)
-        n = self._normals[f]
+        n = self.face_normals[f]
         t = t - (t @ n) * n
         norm = np.linalg.norm(t)
         if norm < 1e-9 * max(1.0, np.linalg.norm(tangent)):
@@ -266,7 +267,7 @@ class SurfaceGeodesics:
         """
         xs, faces, _ = self.project(np.asarray([p, q], dtype=np.float64))
         xp, xq = xs
-        normal = self._normals[faces[0]]
+        normal = self.face_normals[faces[0]]
         t0 = np.asarray(tangent, dtype=np.float64)
         t0 = t0 - (t0 @ normal) * normal
         if np.linalg.norm(t0) < 1e-9 * max(1.0, np.linalg.norm(tangent)):
@@ -310,7 +311,7 @@ class SurfaceGeodesics:
             direction = np.cos(theta) * t0 + np.sin(theta) * b0
             line = self.trace(xp, direction, arc + window)
             s, c, tangent = _closest_on_polyline(line, xq, arc - window, arc + window)
-            side = np.cross(self._normals[self.project(c)[1][0]], tangent)
+            side = np.cross(self.face_normals[self.project(c)[1][0]], tangent)
             return line, s, float(np.linalg.norm(xq - c)), float((xq - c) @ side)
 
         tol = 1e-9 * self.diagonal

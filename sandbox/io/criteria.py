@@ -88,13 +88,13 @@ def _winding_number(world, of) -> float:
     names = _bodies(world, of)
     if len(names) != 2:
         raise ValueError("winding_number needs 'of: [active_rope, target_rope]'")
-    rec = getattr(world, "windings", {}).get(tuple(names))
+    rec = world.record.windings.get(tuple(names))
     if rec is None:
         raise ValueError(f"no winding of {names[0]!r} around {names[1]!r} was made")
     x = world.positions()
-    c = x[rec["particles"]].astype(np.float64)
+    c = x[rec.particles].astype(np.float64)
     t = world.rope_positions(names[1]).astype(np.float64)
-    return abs(float(winding_integral(c, t, rec["x_hat"])))
+    return abs(float(winding_integral(c, t, rec.x_hat)))
 
 
 def _linking_number(world, of) -> float:
@@ -145,9 +145,9 @@ def _knot_length(world, of) -> float:
     return _touch_measure(world, of, "knot_length", touch_length)
 
 
-def _wraps(world, of) -> list[tuple[tuple[str, str], dict]]:
+def _wraps(world, of) -> list[tuple[tuple[str, str], Any]]:
     names = _bodies(world, of)
-    wraps = [(key, rec) for key, rec in getattr(world, "wraps", {}).items() if key[0] in names]
+    wraps = [(key, rec) for key, rec in world.record.wraps.items() if key[0] in names]
     if not wraps:
         raise ValueError(f"no control line of {', '.join(names)} was wrapped")
     return wraps
@@ -158,7 +158,7 @@ def _overlap_distances(world, of) -> np.ndarray:
     from sandbox.geometry.mesh_geodesic import polyline_distance
 
     x = world.positions().astype(np.float64)
-    d = [polyline_distance(x[rec["particles"][rec["arc"] <= rec["c_end"] + 1e-9]], rec["line"])
+    d = [polyline_distance(x[rec.laid()], rec.line)
          for _, rec in _wraps(world, of)]
     return np.concatenate(d) if d else np.zeros(0)
 
@@ -185,10 +185,10 @@ def _wrap_turns(world, of) -> float:
     x = world.positions().astype(np.float64)
     best = 0.0
     for _, rec in _wraps(world, of):
-        k = world.object_index(rec["object"])
+        k = world.object_index(rec.object)
         verts, _ = world.objects.world_mesh(k)
         centre = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
-        laid = rec["particles"][rec["arc"] <= rec["c_end"] + 1e-9]
+        laid = rec.laid()
         if len(laid) > 1:
             best = max(best, abs(turns_about(x[laid], axis=(0.0, 1.0, 0.0), origin=centre)))
     return best

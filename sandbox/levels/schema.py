@@ -23,15 +23,15 @@ from pydantic import (
     ConfigDict,
     Discriminator,
     Field,
-    PlainValidator,
     Strict,
     Tag,
     ValidationInfo,
-    WithJsonSchema,
     field_validator,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
+
+from sandbox.model.sites import ClothSite, RopeSite
 
 
 def fail(kind: str, message: str) -> PydanticCustomError:
@@ -42,19 +42,6 @@ SCHEMA_VERSION = 1
 TERMINAL_STATES = ("success", "failure")
 """Names of the FSM's two terminal states."""
 
-CORNERS = ("A", "B", "C", "D")
-"""Cloth corners, counter-clockwise seen from above, A at (-x, -z) (SPEC §6)."""
-
-FALLBACK_METRICS = (
-    "max_strain",
-    "max_penetration",
-    "fsm_state",
-    "linking_number",
-    "winding_number",
-    "knot_type",
-    "coverage",
-    "overlap_error",
-)
 
 Float = Annotated[float, Strict(), AllowInfNan(False)]
 Int = Annotated[int, Strict()]
@@ -128,49 +115,6 @@ Solver = Literal["xpbd", "projection"]
 RopeContacts = Literal["average", "balanced", "split"]
 Arch = Literal["auto", "cpu", "cuda", "vulkan", "metal"]
 Event = Literal["done", "failed", "timeout"]
-
-
-def _cloth_site(value: Any) -> str | tuple[int, int]:
-    if isinstance(value, str) and (value in CORNERS or value == "center"):
-        return value
-    if (
-        isinstance(value, (list, tuple))
-        and len(value) == 2
-        and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
-    ):
-        return (value[0], value[1])
-    raise fail(
-        "cloth_site",
-        f"{value!r} is not a cloth site; allowed: a corner 'A', 'B', 'C', 'D', 'center' "
-        "or a grid index [i, j]",
-    )
-
-
-def _rope_site(value: Any) -> str | int:
-    if value in ("start", "end") and isinstance(value, str):
-        return value
-    if isinstance(value, int) and not isinstance(value, bool):
-        return value
-    raise fail(
-        "rope_site",
-        f"{value!r} is not a rope site; allowed: 'start', 'end' or a particle index "
-        "(negative counts from the end)",
-    )
-
-
-_INDEX2 = {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2}
-ClothSite = Annotated[
-    Union[str, tuple[int, int]],
-    PlainValidator(_cloth_site),
-    WithJsonSchema({"anyOf": [{"enum": [*CORNERS, "center"]}, _INDEX2]}),
-]
-"""A cloth particle: a corner "A".."D", "center", or a grid index (i, j)."""
-RopeSite = Annotated[
-    Union[str, int],
-    PlainValidator(_rope_site),
-    WithJsonSchema({"anyOf": [{"enum": ["start", "end"]}, {"type": "integer"}]}),
-]
-"""A rope particle: "start", "end", or an index (negative counts from the end)."""
 
 
 class _Model(BaseModel):
@@ -457,10 +401,8 @@ class Budget(_Model):
 
 
 def _known_metrics() -> list[str]:
-    try:
-        from sandbox.io.criteria import METRICS  # noqa: PLC0415
-    except ImportError:
-        return list(FALLBACK_METRICS)
+    from sandbox.io.criteria import METRICS  # noqa: PLC0415  (the one list of metric names)
+
     return list(METRICS)
 
 

@@ -149,7 +149,7 @@ def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
 
 def rope_holds(world, rope, exclude) -> list[tuple[int, np.ndarray]]:
     """Particles of the whole rope under ``rope`` held by a hand now, but not in ``exclude``: (global index, command)."""
-    whole = world._rope(base_name(rope.name))
+    whole = world.rope(base_name(rope.name))
     idx = np.arange(whole.start, whole.end)
     held = idx[world.control.is_driven(idx) & ~np.isin(idx, np.asarray(list(exclude), dtype=np.int64))]
     return [(int(h), world.control.target([h])[0].astype(np.float64)) for h in held]
@@ -244,8 +244,8 @@ class Crossing(Maneuver):
 
     def start(self) -> None:
         p, w = self.params, self.world
-        self.c = w._rope(p.active)
-        self.t = w._rope(p.target)
+        self.c = w.rope(p.active)
+        self.t = w.rope(p.target)
         x = w.positions().astype(np.float64)
         tip_t_site = p.target_tip if p.target_tip is not None else "end"
         tip_c_idx = w.site_particles(p.active, p.active_tip)
@@ -301,8 +301,7 @@ class Crossing(Maneuver):
         self.total = sum(float(np.linalg.norm(np.diff(np.vstack([m[1], *m[2]]), axis=0), axis=1).sum())
                          for m in self.moves) or 1.0
         self.travelled = 0.0
-        w.crossings = getattr(w, "crossings", {})
-        w.crossings[(p.active, p.target)] = self.x.copy()
+        w.record.crossings[(p.active, p.target)] = self.x.copy()
 
     def _keep_holds(self) -> None:
         """Pull every waypoint back within its rope's reach from the particles other hands hold.
@@ -322,7 +321,7 @@ class Crossing(Maneuver):
             if not holds:
                 continue
             body = base_name(rope.name)
-            first = self.world._rope(body).start  # holds are named by index along the rope, as sites are
+            first = self.world.rope(body).start  # holds are named by index along the rope, as sites are
             out = []
             for q in ways:
                 q, h = within_holds(q, float(idx.mean()), holds, rope.rod_length, self.params.slack, pos)
@@ -386,7 +385,7 @@ class Crossing(Maneuver):
         # The knot may have slid past the strands' split while it was
         # tightened (an overhand creeps along its rope): look along the whole
         # rope, at every part of the ropes it could touch.
-        whole, other_whole = self.world._rope(base_name(strand.name)), self.world._rope(base_name(other.name))
+        whole, other_whole = self.world.rope(base_name(strand.name)), self.world.rope(base_name(other.name))
         parts = [whole] if other_whole.name == whole.name else [whole, other_whole]
         tip = int(tip_idx.mean())
         k = knot_exit(x, whole, parts, tip)
@@ -434,7 +433,7 @@ class Crossing(Maneuver):
         if tips_ok and near <= self.gap + (self.c.radius + self.t.radius):
             # The strands cross where they pass closest (gravity lets them sag
             # below the planned X): that is where the winding starts.
-            w.crossings[(p.active, p.target)] = 0.5 * (at_c + at_t)
+            w.record.crossings[(p.active, p.target)] = 0.5 * (at_c + at_t)
             self.progress = 1.0
             return Status.DONE
         if self.ticks > 4 * w.fps + self.total / p.speed * w.fps:

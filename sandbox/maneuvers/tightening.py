@@ -125,13 +125,13 @@ class Tightening(Maneuver):
         p, w = self.params, self.world
         x = w.positions().astype(np.float64)
         names = p.knot or [q.body for q in p.pulls]
-        self.strands = [w._rope(n) for n in dict.fromkeys(names)]
+        self.strands = [w.rope(n) for n in dict.fromkeys(names)]
         self.centre = self._knot_centre(x)
         if p.release_others:
             pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls]
                                     + [w.site_particles(k.body, s) for k in p.keep for s in k.sites])
             for st in self.strands:
-                whole = w._rope(base_name(st.name))
+                whole = w.rope(base_name(st.name))
                 idx = np.arange(whole.start, whole.end)
                 held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
                 if len(held):
@@ -164,9 +164,9 @@ class Tightening(Maneuver):
     def _records(self) -> list[dict]:
         """Winding records (oldest first) that wound or were wound by one of the knot's ropes."""
         names = {base_name(s.name) for s in self.strands}
-        rec = getattr(self.world, "windings", {})
+        rec = self.world.record.windings
         return [v for (c, t), v in rec.items()
-                if (base_name(c) in names or base_name(t) in names) and len(np.atleast_1d(v["particles"]))]
+                if (base_name(c) in names or base_name(t) in names) and len(np.atleast_1d(v.particles))]
 
     def _start_push(self, x: np.ndarray) -> np.ndarray:
         """The wound particles the ``push`` hand pushes (none without ``push``)."""
@@ -180,7 +180,7 @@ class Tightening(Maneuver):
                             f"before this Tightening; found {len(rec)}")
             return np.zeros(0, np.int64)
         ends = np.concatenate([idx for idx, _, _ in self.ends])
-        idx = np.atleast_1d(rec[-1]["particles"]).astype(np.int64)
+        idx = np.atleast_1d(rec[-1].particles).astype(np.int64)
         idx = idx[~np.isin(idx, ends)]
         self._push_toward(x, idx)
         return idx
@@ -189,7 +189,7 @@ class Tightening(Maneuver):
         push = self.params.push
         if push.toward != "knot":
             return np.asarray(push.toward, float)
-        return np.vstack([x[np.atleast_1d(v["particles"])] for v in self._records()[:-1]]).mean(axis=0)
+        return np.vstack([x[np.atleast_1d(v.particles)] for v in self._records()[:-1]]).mean(axis=0)
 
     def _push_toward(self, x: np.ndarray, idx: np.ndarray) -> None:
         """Push particles ``idx`` with ``push.force`` in all toward the push's goal."""
@@ -213,8 +213,8 @@ class Tightening(Maneuver):
             self._push_toward(x, self.pushed)
 
     def _knot_centre(self, x: np.ndarray) -> np.ndarray:
-        rec = getattr(self.world, "windings", {})
-        parts = [x[v["particles"]] for v in rec.values() if len(v["particles"])]
+        rec = self.world.record.windings
+        parts = [x[v.particles] for v in rec.values() if len(np.atleast_1d(v.particles))]
         if parts:
             return np.vstack(parts).mean(axis=0)
         return np.vstack([x[s.start:s.end] for s in self.strands]).mean(axis=0)

@@ -21,6 +21,7 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 
+from sandbox.record import WindingRecord
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.knotting import rope_holds, within_holds
 
@@ -79,8 +80,8 @@ class Winding(Maneuver):
         from sandbox.geometry.tube import tube_radius
 
         p, w = self.params, self.world
-        self.c = w._rope(p.active)
-        self.t = w._rope(p.target)
+        self.c = w.rope(p.active)
+        self.t = w.rope(p.target)
         self.R = tube_radius(self.c.radius, self.t.radius, p.clearance)
         xc = w.rope_positions(p.active)
         xt = w.rope_positions(p.target)
@@ -119,8 +120,7 @@ class Winding(Maneuver):
         if len(held):
             w.control.release(held)
         self.x_hat = self.geodesic.x_hat
-        w.windings = getattr(w, "windings", {})
-        w.windings[(p.active, p.target)] = {"particles": self._particle(0), "x_hat": self.x_hat}
+        w.record.windings[(p.active, p.target)] = WindingRecord(np.atleast_1d(self._particle(0)), self.x_hat)
 
     def _straighten(self, xt: np.ndarray) -> np.ndarray:
         """Hold T straight for ``straighten`` m around X_T, along T's direction there.
@@ -176,7 +176,7 @@ class Winding(Maneuver):
         each other along the rope are not a crossing (they are the same bend).
         """
         p, w = self.params, self.world
-        x = getattr(w, "crossings", {}).get((p.active, p.target))
+        x = w.record.crossings.get((p.active, p.target))
         if x is not None:
             return int(np.argmin(np.linalg.norm(xc - x, axis=1)))
         from sandbox.maneuvers.knotting import strand_approach
@@ -263,7 +263,7 @@ class Winding(Maneuver):
             self.k += 1
             self.tick_in_particle = 0
             last = self._particle(min(self.k, self.n_turns) - 1)  # the turns, not the exit
-            w.windings[(p.active, p.target)]["particles"] = np.arange(
+            w.record.windings[(p.active, p.target)].particles = np.arange(
                 min(self._particle(0), last), max(self._particle(0), last) + 1)
             if self.k < self.n:
                 nxt = self._particle(self.k)

@@ -38,9 +38,10 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 
-from sandbox.levels.schema import ClothSite
+from sandbox.model.sites import ClothSite
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.basic import TargetLike, resolve_target
+from sandbox.record import WrapRecord
 
 Corner = Literal["A", "B", "C", "D"]
 LINE_OF_CORNER = {"A": 1, "B": 2, "C": 3, "D": 4}
@@ -53,7 +54,7 @@ def surface(world, name: str, hull: bool):
     from sandbox.geometry.mesh_geodesic import SurfaceGeodesics
     import trimesh
 
-    cache = world.__dict__.setdefault("surfaces", {})
+    cache = world.surfaces
     k = world.object_index(name)
     pose = world.objects.pose(k)
     key = (name, bool(hull))
@@ -66,15 +67,22 @@ def surface(world, name: str, hull: bool):
     return geo
 
 
-def _runs_under(geo, G: np.ndarray) -> bool:
-    """Whether target line G, past its first tenth, runs over surface that faces the ground (normal more than
-    60 degrees below the horizontal): under an overhang, or under the object where it rests on the cloth."""
+def _under_from(geo, G: np.ndarray) -> int | None:
+    """First index of target line G, past its first tenth, on surface that faces the ground (normal more than
+    30 degrees below the horizontal): under an overhang, or under the object where it rests on the cloth.
+    None when G never runs there."""
     arc = _arc(G)
-    far = arc > 0.1 * arc[-1]
-    if not far.any():
-        return False
+    far = np.flatnonzero(arc > 0.1 * arc[-1])
+    if not len(far):
+        return None
     _, face, _ = geo.project(G[far])
-    return bool((geo._normals[face] @ UP < -0.5).any())
+    down = np.flatnonzero(geo.face_normals[face] @ UP < -0.5)
+    return int(far[down[0]]) if len(down) else None
+
+
+def _runs_under(geo, G: np.ndarray) -> bool:
+    """Whether target line G runs under the object (see ``_under_from``)."""
+    return _under_from(geo, G) is not None
 
 
 def offset_line(geo, line: np.ndarray, r: float) -> np.ndarray:
@@ -93,7 +101,7 @@ def offset_line(geo, line: np.ndarray, r: float) -> np.ndarray:
 
     P = resample(line, 0.5 * r)
     _, face, _ = geo.project(P)
-    N = geo._normals[face]
+    N = geo.face_normals[face]
     pts = [P[0] + r * N[0]]
     for k in range(1, len(P)):
         cos = float(np.clip(N[k - 1] @ N[k], -1.0, 1.0))
@@ -287,7 +295,7 @@ class _Line:
 class Wrapping(Maneuver):
     """Lay control lines of a cloth onto target lines of an object (paper §5.1).
 
-    Records ``world.wraps[(cloth, corner)]`` (target lines and particles) for
+    Records ``world.record.wraps[(cloth, corner)]`` (target lines and particles) for
     the ``overlap_error`` and ``coverage`` criteria. Fails at the start when
     a control line does not touch the object. The lines stay held after.
     """
@@ -298,7 +306,7 @@ class Wrapping(Maneuver):
     def start(self) -> None:
         p = self.params
         w = self.world
-        cloth = w._cloth(p.body)
+        cloth = w.cloth(p.body)
         self.cloth = cloth
         self.r = 0.5 * cloth.thickness
         self.step = 0.5 * min(cloth.spacing)
@@ -353,6 +361,10 @@ class Wrapping(Maneuver):
                 G = self._target_line(line_geo, x[idx[i0]], q_hull, length, corner)
                 notes.append(f"{what}: on the surface its target line ran under {p.object!r}; it follows the "
                              "convex hull")
+            cut = _under_from(line_geo, G)
+            if cut is not None:  # no cloth under the object: the line ends there and the rest stays free
+                G = G[: max(cut, 2)]
+                notes.append(f"{what}: its target line ends where it would run under {p.object!r}")
             # The line starts at the contact particle itself, so that its
             # link to the held part of the cloth keeps its length.
             O = offset_line(line_geo, G, self.r * 1.05)
@@ -393,10 +405,8 @@ class Wrapping(Maneuver):
         self.cmd = {ln.corner: x[ln.driven].copy() for ln in self.lines}
         self.released_at = None  # tick at which ``hold: end`` let the laid particles go
         self.total = sum(ln.c_end for ln in self.lines) or 1.0
-        wraps = w.__dict__.setdefault("wraps", {})
         for ln in self.lines:
-            wraps[(p.body, ln.corner)] = {"object": p.object, "line": ln.O, "surface_line": ln.G,
-                                         "particles": ln.driven, "arc": ln.s, "c_end": ln.c_end}
+            w.record.wraps[(p.body, ln.corner)] = WrapRecord(p.object, ln.O, ln.G, ln.driven, ln.s, ln.c_end)
             w.control.drive(ln.driven, self.cmd[ln.corner])
 
     def _target_line(self, geo, x0, q, length: float, corner: str) -> np.ndarray:
@@ -413,7 +423,7 @@ class Wrapping(Maneuver):
             side = geo.project(x0 + 3.0 * self.r * UP)[0][0]
             head = geo.between(p0, side)
             _, face, _ = geo.project(side)
-            n = geo._normals[face[0]]
+            n = geo.face_normals[face[0]]
             up = UP - (UP @ n) * n
             if np.linalg.norm(up) < 0.2:
                 raise ValueError(f"corner {corner}: the target line starts on a face that looks "
