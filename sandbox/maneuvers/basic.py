@@ -66,8 +66,8 @@ TargetLike = Annotated[Target, pydantic.BeforeValidator(_as_target)]
 
 
 class WaitParams(Params):
-    ticks: Annotated[int, pydantic.Field(ge=0, le=10**9)] = 0
-    seconds: Annotated[float, pydantic.Field(ge=0, le=1e6)] = 0.0
+    ticks: Annotated[int, pydantic.Field(ge=0, le=10**9)] = 0  # frames to wait
+    seconds: Annotated[float, pydantic.Field(ge=0, le=1e6)] = 0.0  # simulated time to wait, added to ``ticks``
 
 
 @register
@@ -87,9 +87,11 @@ class Wait(Maneuver):
 
 
 class AnchorParams(Params):
-    body: str
-    sites: list[Site]
-    at: TargetLike | None = None
+    body: str  # the rope or cloth
+    sites: list[Site]  # its particles held: rope start/end/index, cloth corner/center/[i, j], or "all"
+    at: TargetLike | None = None  # where to hold them (a point or an object's site); default: where they are
+    # an object put on the cloth with the sites under the centre of its base
+    # (paper Table 2); every particle it presses is held as well
     object: str | None = None
 
 
@@ -147,13 +149,13 @@ class Anchoring(Maneuver):
 
 
 class MoveParams(Params):
-    body: str
-    sites: list[Site]
-    to: TargetLike
-    via: list[TargetLike] = []
-    speed: Annotated[float, pydantic.Field(gt=0)] = 0.5
-    tolerance: Annotated[float, pydantic.Field(gt=0)] = 1e-3
-    hold: bool = True
+    body: str  # the rope or cloth
+    sites: list[Site]  # the particles moved, together (their offsets from their centre are kept)
+    to: TargetLike  # where their centre goes: a point or an object's site
+    via: list[TargetLike] = []  # points passed through on the way, in order
+    speed: Annotated[float, pydantic.Field(gt=0)] = 0.5  # m/s of the centre
+    tolerance: Annotated[float, pydantic.Field(gt=0)] = 1e-3  # m from the target that counts as arrived
+    hold: bool = True  # keep holding the sites there once arrived (else let go)
 
 
 @register
@@ -216,8 +218,8 @@ class MoveTo(Maneuver):
 
 
 class ReleaseParams(Params):
-    body: str
-    sites: list[Site] = ["all"]
+    body: str  # the rope or cloth
+    sites: list[Site] = ["all"]  # the particles let go ("all": every held particle of the body)
 
 
 @register

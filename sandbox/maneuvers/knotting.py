@@ -190,7 +190,7 @@ class CrossingParams(Params):
     # "contact": where the strand's rope leaves a knot tied before on its way
     # to the tip (e.g. the first half of a granny knot).
     active_base: Site | Literal["contact"] | None = None
-    target_base: Site | Literal["contact"] | None = None
+    target_base: Site | Literal["contact"] | None = None  # T's constrained bottom point (as ``active_base``)
     # m along each strand from its "contact" towards its tip where a hand
     # pinches it (held through the crossing): the bottoms of a second half
     # knot then sit apart, on either side of the first, as the strands leave it.
@@ -203,7 +203,7 @@ class CrossingParams(Params):
     height: Annotated[float, pydantic.Field(gt=0)] = 0.15  # m, X above the bottoms
     sign: Literal[1, -1] = 1  # +1: C passes in front of T (on +z)
     gap: Annotated[float, pydantic.Field(ge=0)] | None = None  # m; default 1.5 (r_C + r_T)
-    slack: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.9
+    slack: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.9  # most bottom-to-tip distance, over the rope between them
     elevation: Annotated[float, pydantic.Field(gt=0, lt=90)] = 45.0  # degrees
     lift: Annotated[float, pydantic.Field(ge=0)] = 0.05  # m, tips rise first by this much
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.5  # m/s of the tips

@@ -51,8 +51,8 @@ class Push(Params):
 
 
 class TighteningParams(Params):
-    pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]
-    push: Push | None = None
+    pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]  # the ends pulled: {body, site, direction or toward, force, distance}
+    push: Push | None = None  # a hand that pushes the last wound part: {toward (a point or knot), force, speed}
     keep: list[Kept] = []  # held sites that ``release_others`` does not let go
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
@@ -66,7 +66,7 @@ class TighteningParams(Params):
     # not grown by ``stall`` m for ``stall_frames`` frames (a tight knot that
     # jitters never has every end still, but it no longer gives rope).
     stall: Annotated[float, pydantic.Field(gt=0)] = 0.002
-    stall_frames: Annotated[int, pydantic.Field(ge=1)] = 45
+    stall_frames: Annotated[int, pydantic.Field(ge=1)] = 45  # frames without growth that make a forced pull tight (see ``stall``)
     distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
     max_strain: Annotated[float, pydantic.Field(gt=0)] = 0.003  # rod strain that means "tight"
     max_overlap: Annotated[float, pydantic.Field(gt=0)] = 0.05  # capsule overlap / radius that means "tight"

@@ -33,12 +33,12 @@ class WindingParams(Params):
     direction: Literal[1, -1] = 1  # wind C's particles after (+1) or before (-1) start
     theta: Annotated[float, pydantic.Field(gt=0, lt=90)] = 45.0  # degrees
     w0: Annotated[float, pydantic.Field(gt=0, le=10)] = 1.0  # turns
-    handedness: Literal[1, -1] = 1
+    handedness: Literal[1, -1] = 1  # +1: the turns go right-handed about T (counter-clockwise seen along it)
     along: Literal[1, -1] = 1  # advance along T's particle order (+1) or against it
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m/s of the driven particle
     tolerance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.25  # fraction of C's rod length
     refresh: Annotated[int, pydantic.Field(ge=1)] = 1  # frames between geodesic updates
-    max_ticks_per_particle: Annotated[int, pydantic.Field(ge=1)] = 90
+    max_ticks_per_particle: Annotated[int, pydantic.Field(ge=1)] = 90  # frames a particle may take to reach its target before the winding fails
     straighten: Annotated[float, pydantic.Field(ge=0)] = 0.0  # m of T held straight around X_T (paper §4.2)
     follow: bool = False  # once wound, the last particle's hold rides on T (a target that keeps moving)
     # The hand keeps C's tip and carries the tail around T along G's tangent
@@ -52,7 +52,7 @@ class WindingParams(Params):
     # along T, so that the line leaves T square to it (not down T into a
     # knot tied before).
     exit: Annotated[float, pydantic.Field(ge=0)] = 0.0
-    exit_square: bool = False
+    exit_square: bool = False  # the exit line leaves T square to it (see ``exit``)
     # Hold C's crossing particle for the whole winding (a hand pinching the
     # crossing), so that the turns cannot slide along T while they are laid.
     pinch: bool = False

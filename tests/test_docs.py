@@ -1,0 +1,19 @@
+"""The generated reference pages are current and complete."""
+
+import pathlib
+
+from sandbox.maneuvers.base import REGISTRY
+from sandbox.maneuvers.reference import markdown, parameter_texts
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_every_maneuver_parameter_has_a_text():
+    missing = [f"{name}.{p}" for name, cls in REGISTRY.items()
+               for p, text in parameter_texts(cls.Params).items() if not text.strip()]
+    assert not missing, f"write a docstring entry or a comment for: {', '.join(missing)}"
+
+
+def test_the_maneuver_reference_is_current():
+    """docs/maneuvers.md is what the code generates (python -m sandbox.maneuvers.reference > docs/maneuvers.md)."""
+    assert (ROOT / "docs" / "maneuvers.md").read_text() == markdown()
