@@ -10,6 +10,7 @@ from sandbox.geometry.tube import smooth_axis
 from sandbox.levels import LevelError, load_level_from_string
 from sandbox.maneuvers.knotting import closest_approach, crossing_targets, knot_exit
 from sandbox.model.strands import parse_strand
+from sandbox.maneuvers.tightening import SETTLE_FRAMES
 from sandbox.record import WindingRecord
 
 import sandbox.maneuvers  # noqa: F401
@@ -384,7 +385,7 @@ def test_tightening_by_force_ends_once_the_pull_stalls():
         if w.fsm.finished:
             break
     assert w.fsm.succeeded, w.fsm.events
-    assert man.tight and man.still < man.params.settle_frames  # tight by the stall, not by coming to rest
+    assert man.tight and man.still < SETTLE_FRAMES  # tight by the stall, not by coming to rest
     assert man.pulled < 0.5  # and not stopped by the distance
     x = w.rope_positions("R")
     length = 0.02 * (len(x) - 1)

@@ -204,7 +204,6 @@ class CrossingParams(Params):
     sign: Literal[1, -1] = 1  # +1: C passes in front of T (on +z)
     gap: Annotated[float, pydantic.Field(ge=0)] | None = None  # m; default 1.5 (r_C + r_T)
     slack: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.9  # most bottom-to-tip distance, over the rope between them
-    elevation: Annotated[float, pydantic.Field(gt=0, lt=90)] = 45.0  # degrees
     lift: Annotated[float, pydantic.Field(ge=0)] = 0.05  # m, tips rise first by this much
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.5  # m/s of the tips
     tolerance: Annotated[float, pydantic.Field(gt=0)] = 0.005  # m
@@ -278,7 +277,7 @@ class Crossing(Maneuver):
             across = _flat(x[tip_t_idx].mean(axis=0) - x[tip_c_idx].mean(axis=0))
         self.x, tip_c, tip_t, self.xhat, zhat = crossing_targets(
             bc, bt, len_c, len_t, height=p.height, sign=p.sign, gap=gap, slack=p.slack,
-            elevation=p.elevation, across=across)
+            across=across)
         plans = [(p.active, p.active_tip, tip_c, p.sign)]
         if p.target_tip is not None:
             plans.append((p.target, p.target_tip, tip_t, -p.sign))

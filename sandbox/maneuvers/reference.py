@@ -128,13 +128,18 @@ def _default_text(field) -> str:
     return f"`{value!r}`"
 
 
+def shipped(registry) -> list[tuple[str, type]]:
+    """The maneuvers the sandbox ships (not those a host or a test registered), by name."""
+    return sorted((n, c) for n, c in registry.items() if c.__module__.startswith("sandbox.maneuvers."))
+
+
 def markdown() -> str:
     """The whole reference as Markdown."""
     import sandbox.maneuvers  # noqa: F401, PLC0415  (registers every maneuver)
     from sandbox.maneuvers.base import REGISTRY  # noqa: PLC0415
 
     out = [HEADER]
-    for name, cls in sorted(REGISTRY.items()):
+    for name, cls in shipped(REGISTRY):
         summary = inspect.cleandoc(cls.__doc__ or "").split("\n\n")[0].replace("\n", " ").replace("``", "`")
         out.append(f"\n## `{name}`\n\n{summary}\n")
         texts = parameter_texts(cls.Params)

@@ -19,6 +19,13 @@ from sandbox.maneuvers.knotting import _UP, Site, Vec3, _unit
 from sandbox.model.strands import base_name
 
 
+SETTLE_FRAMES = 15
+"""Frames every pulled end must stay below ``settle_speed`` for a forced pull to be tight."""
+MAX_OVERLAP = 0.05
+"""Capsule overlap, over the radius, that makes a moved pull tight."""
+BACKOFF = 0.01
+"""m each end of a moved pull gives back once the knot is tight."""
+
 class Pull(Params):
     """One end pulled by Tightening: a site of a rope or strand and where it goes."""
 
@@ -53,7 +60,7 @@ class Push(Params):
 class TighteningParams(Params):
     pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]  # the ends pulled: {body, site, direction or toward, force, distance}
     push: Push | None = None  # a hand that pushes the last wound part: {toward (a point or knot), force, speed}
-    keep: list[Kept] = []  # held sites that ``release_others`` does not let go
+    keep: list[Kept] = []  # held sites that are not let go when the pull starts (standing ends an object holds)
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
     # N: pull each end with this force instead of moving it; ``speed`` is then
@@ -61,7 +68,6 @@ class TighteningParams(Params):
     # balance, and is tight when the ends stop.
     force: Annotated[float, pydantic.Field(gt=0)] | None = None
     settle_speed: Annotated[float, pydantic.Field(gt=0)] = 0.02  # m/s below which a pulled end has stopped
-    settle_frames: Annotated[int, pydantic.Field(ge=1)] = 15  # frames every end must stay stopped
     # With ``force``: also tight once the farthest any end has been pulled has
     # not grown by ``stall`` m for ``stall_frames`` frames (a tight knot that
     # jitters never has every end still, but it no longer gives rope).
@@ -69,9 +75,6 @@ class TighteningParams(Params):
     stall_frames: Annotated[int, pydantic.Field(ge=1)] = 45  # frames without growth that make a forced pull tight (see ``stall``)
     distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
     max_strain: Annotated[float, pydantic.Field(gt=0)] = 0.003  # rod strain that means "tight"
-    max_overlap: Annotated[float, pydantic.Field(gt=0)] = 0.05  # capsule overlap / radius that means "tight"
-    backoff: Annotated[float, pydantic.Field(ge=0)] = 0.01  # m each end gives back once tight
-    release_others: bool = True  # let go of every other held particle of the knot's ropes first
     # What the hands do once done, with ``force``: "fixed" holds the ends where
     # they stopped; "pull" keeps pulling, so the hands' give (the drag) takes up
     # the energy of a knot that jitters under tension instead of reflecting it.
@@ -99,9 +102,9 @@ class Tightening(Maneuver):
     sites in ``keep`` (standing ends that an object or the cloth holds). Each pulled
     site then moves along its direction at ``speed``. The knot is tight
     when pulling more would stretch a rod by more than ``max_strain`` or press
-    two rope capsules into each other by more than ``max_overlap`` of a
-    radius: collisions stay hard, so the ends give back ``backoff`` and are
-    held there. Done when tight or after ``distance``.
+    two rope capsules into each other by more than a twentieth of a
+    radius (``MAX_OVERLAP``): collisions stay hard, so the ends give back
+    ``BACKOFF`` and are held there. Done when tight or after ``distance``.
 
     With ``force`` the hands pull instead of moving: each end stays dynamic
     and feels ``force`` newtons along its direction and a drag that keeps it
@@ -109,9 +112,9 @@ class Tightening(Maneuver):
     where the tensions balance (a knot between two held standing parts is
     drawn to the middle rather than to the hand that stops last). It is tight
     when every end has moved slower than ``settle_speed`` for
-    ``settle_frames`` frames, or when the farthest pull has not grown by
+    ``SETTLE_FRAMES`` frames, or when the farthest pull has not grown by
     ``stall`` for ``stall_frames`` frames (the force, not ``max_strain`` or
-    ``max_overlap``, bounds how hard the rope is pulled); the ends are then
+    the overlap, bounds how hard the rope is pulled); the ends are then
     held where they are (``hold: fixed``) or kept pulled (``hold: pull``).
     A pull may set its own ``force``, and its own ``distance``: that end is
     held once it is that far from where it started (a standing part that a
@@ -127,15 +130,15 @@ class Tightening(Maneuver):
         names = p.knot or [q.body for q in p.pulls]
         self.strands = [w.rope(n) for n in dict.fromkeys(names)]
         self.centre = self._knot_centre(x)
-        if p.release_others:
-            pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls]
-                                    + [w.site_particles(k.body, s) for k in p.keep for s in k.sites])
-            for st in self.strands:
-                whole = w.rope(base_name(st.name))
-                idx = np.arange(whole.start, whole.end)
-                held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
-                if len(held):
-                    w.control.release(held)
+        # Every other held particle of the knot's ropes is let go, but for ``keep``.
+        pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls]
+                                + [w.site_particles(k.body, s) for k in p.keep for s in k.sites])
+        for st in self.strands:
+            whole = w.rope(base_name(st.name))
+            idx = np.arange(whole.start, whole.end)
+            held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
+            if len(held):
+                w.control.release(held)
         self.ends = []
         for q in p.pulls:
             idx = w.site_particles(q.body, q.site)
@@ -275,7 +278,7 @@ class Tightening(Maneuver):
             self.stalled += 1
         self.progress = min(self.pulled / p.distance, 1.0)
         # The force bounds the tension: the knot is as tight as this pull makes it once the ends stop.
-        tight = self.still >= p.settle_frames or self.stalled >= p.stall_frames
+        tight = self.still >= SETTLE_FRAMES or self.stalled >= p.stall_frames
         if tight or self.pulled >= p.distance:
             if p.hold == "fixed":
                 self._hold_ends(x)
@@ -297,10 +300,10 @@ class Tightening(Maneuver):
         if p.force is not None:
             return self._update_pulling(x)
         step = p.speed / w.fps
-        if strain > p.max_strain or overlap > p.max_overlap:
-            # Tight: give back ``backoff`` and hold the ends there, so that a
+        if strain > p.max_strain or overlap > MAX_OVERLAP:
+            # Tight: give back ``BACKOFF`` and hold the ends there, so that a
             # taut rope does not keep grinding its contacts.
-            back = min(step + p.backoff, self.pulled)
+            back = min(step + BACKOFF, self.pulled)
             self.ends = [(idx, pos - back * d, d) for idx, pos, d in self.ends]
             for idx, pos, _ in self.ends:
                 w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))

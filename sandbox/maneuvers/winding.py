@@ -7,7 +7,7 @@ the next particle. Only the current particle is constrained: collisions keep
 the wound part on the tube, and the last particle stays held when the
 maneuver is done. T may move: when any of its particles has moved
 by more than a tenth of the tube radius since G was traced, the tube and G
-are traced again (at most every ``refresh`` frames) from the crossing point
+are traced again (every frame) from the crossing point
 carried along with T's nearest particle. Once the turns are laid, the exit
 (``exit``) keeps the line it had then: it starts at the last turn's end and
 runs along G's last tangent, a direction that a millimetre's change of that
@@ -26,6 +26,9 @@ from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.knotting import rope_holds, within_holds
 
 
+MAX_TICKS_PER_PARTICLE = 90
+"""Frames a wound particle may take to reach its target before the winding fails."""
+
 class WindingParams(Params):
     active: str  # rope C
     target: str  # rope T
@@ -37,8 +40,6 @@ class WindingParams(Params):
     along: Literal[1, -1] = 1  # advance along T's particle order (+1) or against it
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m/s of the driven particle
     tolerance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.25  # fraction of C's rod length
-    refresh: Annotated[int, pydantic.Field(ge=1)] = 1  # frames between geodesic updates
-    max_ticks_per_particle: Annotated[int, pydantic.Field(ge=1)] = 90  # frames a particle may take to reach its target before the winding fails
     straighten: Annotated[float, pydantic.Field(ge=0)] = 0.0  # m of T held straight around X_T (paper §4.2)
     follow: bool = False  # once wound, the last particle's hold rides on T (a target that keeps moving)
     # The hand keeps C's tip and carries the tail around T along G's tangent
@@ -233,7 +234,7 @@ class Winding(Maneuver):
             return Status.DONE
         xt = w.rope_positions(p.target).astype(np.float64)
         moved = float(np.linalg.norm(xt - self.xt_traced, axis=1).max())
-        if self.ticks % p.refresh == 0 and moved > 0.1 * self.R and self.k < self.n_turns:
+        if moved > 0.1 * self.R and self.k < self.n_turns:
             # T has moved: re-trace G on its current tube from the crossing carried along.
             self.cross = xt[self.j0] + self.offset
             self.targets = self._targets(xt, keep=self.n_turns)[: self.n_max]
@@ -268,8 +269,8 @@ class Winding(Maneuver):
             if self.k < self.n:
                 nxt = self._particle(self.k)
                 self.pos = w.positions()[nxt].astype(np.float64)
-        elif self.tick_in_particle > p.max_ticks_per_particle:
-            self.message = f"particle {idx} did not reach its target within {p.max_ticks_per_particle} frames"
+        elif self.tick_in_particle > MAX_TICKS_PER_PARTICLE:
+            self.message = f"particle {idx} did not reach its target within {MAX_TICKS_PER_PARTICLE} frames"
             w.control.release([idx])
             return Status.FAILED
         self.progress = self.k / max(self.n, 1)
