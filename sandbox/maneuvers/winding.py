@@ -26,6 +26,10 @@ from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.knotting import rope_holds, within_holds
 
 
+STUCK_FRAMES = 15
+"""Frames a particle held back by the rope's reach may go without closing on its target before it is laid there."""
+STUCK_GAIN = 0.01
+"""Closing on the target by less than this fraction of a rod in a frame counts as not closing."""
 MAX_TICKS_PER_PARTICLE = 90
 """Frames a wound particle may take to reach its target before the winding fails."""
 
@@ -99,6 +103,8 @@ class Winding(Maneuver):
         self.xt_traced = xt.astype(np.float64).copy()
         self.k = 0
         self.tick_in_particle = 0
+        self.best_miss, self.stuck = np.inf, 0  # closest the current particle came to its target; frames since
+        self.off_target: list[float] = []  # how far short each particle laid out of reach stayed (m)
         self.targets = self._targets(xt)
         n_left = (len(xc) - 1 - self.i0) if p.direction > 0 else self.i0
         if self.n_turns - 1 > n_left:
@@ -252,17 +258,34 @@ class Winding(Maneuver):
         axis = self.tube.frame(s_ax)[0][0]
         if np.linalg.norm(self.pos - axis) < self.R:
             self.pos = on_tube
+        wanted = self.pos
         self.pos = self._keep_holds(idx, self.pos)
+        held_back = float(np.linalg.norm(self.pos - wanted)) > 1e-9
         w.control.drive([idx], self.pos[None, :])
         if p.carry_tail > 0:
             self._carry_tail(target)
         x = w.positions()[idx]
         self.tick_in_particle += 1
-        if np.linalg.norm(x - target) <= p.tolerance * self.c.rod_length and dist <= step:
+        miss = float(np.linalg.norm(x - target))
+        if miss < self.best_miss - STUCK_GAIN * self.c.rod_length:
+            self.best_miss, self.stuck = miss, 0
+        else:
+            self.stuck += 1
+        # Out of reach: the hands that hold C keep the command short of the
+        # target, and the particle has stopped closing on it. The plan gives
+        # way: the particle is laid where the rope lets it, and the next one
+        # goes on from there, instead of waiting out the timeout.
+        out_of_reach = held_back and self.stuck >= STUCK_FRAMES
+        if out_of_reach:
+            self.off_target.append(miss)
+            self.note = (f"{len(self.off_target)} particle(s) laid short of a target the rope could not "
+                         f"reach (at most {max(self.off_target) * 1e3:.1f} mm)")
+        if out_of_reach or (miss <= p.tolerance * self.c.rod_length and dist <= step):
             if self.k + 1 < self.n and not (p.pinch and self.k == 0):
                 w.control.release([idx])  # only the current particle is held; the last one stays held
             self.k += 1
             self.tick_in_particle = 0
+            self.best_miss, self.stuck = np.inf, 0
             last = self._particle(min(self.k, self.n_turns) - 1)  # the turns, not the exit
             w.record.windings[(p.active, p.target)].particles = np.arange(
                 min(self._particle(0), last), max(self._particle(0), last) + 1)
