@@ -78,7 +78,7 @@ class World:
         self.surfaces: dict = {}  # (object, hull) -> (pose, SurfaceGeodesics): geodesic surfaces at a pose
 
         from sandbox.model.model import Model
-        from sandbox.solvers.xpbd import XPBDSolver
+        from sandbox.solvers.xpbd import SolverConfig, XPBDSolver
 
         builder = ModelBuilder()
         for spec in scene.ropes:
@@ -95,15 +95,8 @@ class World:
             self.model = Model(self.data)
             self.state = self.model.state()
             self.control = self.model.control()
-            ground = None if scene.ground is None else (float(scene.ground.height), float(scene.ground.friction))
-            self.solver = XPBDSolver(
-                self.model, self.state, self.control, gravity=scene.gravity, ground=ground,
-                objects=self.objects, iterations=self.iterations, self_collision_every=sim.self_collision_every,
-                chain_sweeps=sim.chain_sweeps, chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts,
-                cloth_joint=sim.cloth_joint, cloth_joint_every=sim.cloth_joint_every,
-                prestabilize=sim.prestabilize,
-                rope_inelastic=sim.rope_inelastic,
-            )
+            self.solver = XPBDSolver(self.model, self.state, self.control,
+                                     SolverConfig.of_level(scene, sim, self.iterations), objects=self.objects)
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
         # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).
         self.rope_motions = []

@@ -42,6 +42,7 @@ the iterations in chunks of up to ``FUSE_ITERATIONS``, and the passes
 after them.
 """
 
+import dataclasses
 import time
 
 import numpy as np
@@ -82,6 +83,55 @@ def _without(stages, skip_self: bool, skip_joint: bool) -> tuple:
     return tuple(sid for sid in stages if sid not in drop)
 
 
+@dataclasses.dataclass(frozen=True)
+class SolverConfig:
+    """How a scene is stepped: everything the solver takes besides the model, its state and its control.
+
+    Attributes:
+        gravity: (3,) m/s^2.
+        ground: (height m, friction) or None for no ground.
+        iterations: constraint/collision sweeps per substep.
+        self_collision_every: cloth self-collision on every k-th substep (and the last).
+        chain_sweeps: times the chain step runs per iteration (rows and columns re-solved where they disagree).
+        chain_tolerance: relative rod error below which a chain is not re-solved.
+        rope_contacts: "average", "balanced" or "split", how the Jacobi rope contact
+            pass shares corrections (``ropecollision.py``).
+        fuse_iterations: most iterations fused into one substep kernel (None:
+            ``FUSE_ITERATIONS``); more run as several launches (the same passes,
+            in the same order).
+        cloth_joint: conjugate-gradient iterations of the joint cloth step (0: none).
+        cloth_joint_every: the joint step on every k-th substep (and the last).
+        prestabilize: step 0, overlap a substep left pushed apart without speed.
+        rope_inelastic: rope contact pushes taken back out of the velocity.
+    """
+
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+    ground: tuple[float, float] | None = None
+    iterations: int = 1
+    self_collision_every: int = 1
+    chain_sweeps: int = 1
+    chain_tolerance: float = 1e-3
+    rope_contacts: str = "average"
+    fuse_iterations: int | None = None
+    cloth_joint: int = 0
+    cloth_joint_every: int = 1
+    prestabilize: bool = False
+    rope_inelastic: bool = False
+
+    @classmethod
+    def of_level(cls, scene, sim, iterations: int | None = None) -> "SolverConfig":
+        """The configuration a level's ``scene`` and ``sim`` ask for (``iterations``: the level's, if None)."""
+        ground = None if scene.ground is None else (float(scene.ground.height), float(scene.ground.friction))
+        return cls(
+            gravity=tuple(float(g) for g in scene.gravity), ground=ground,
+            iterations=int(sim.iterations if iterations is None else iterations),
+            self_collision_every=sim.self_collision_every, chain_sweeps=sim.chain_sweeps,
+            chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts, cloth_joint=sim.cloth_joint,
+            cloth_joint_every=sim.cloth_joint_every, prestabilize=sim.prestabilize,
+            rope_inelastic=sim.rope_inelastic,
+        )
+
+
 @ti.data_oriented
 class XPBDSolver:
     """Steps one State of a Model with small-step XPBD.
@@ -90,15 +140,8 @@ class XPBDSolver:
         model: static scene data.
         state: the State it advances (bound: kernels read its fields directly).
         control: kinematic targets.
-        gravity: (3,) m/s^2.
-        ground: (height m, friction) or None for no ground.
+        config: how to step (``SolverConfig``).
         objects: an ObjectSet (collision queries) or None.
-        iterations: constraint/collision sweeps per substep.
-        fuse_iterations: most iterations fused into one substep kernel (None:
-            ``FUSE_ITERATIONS``); more run as several launches (the same passes,
-            in the same order).
-        rope_contacts: "average", "balanced" or "split", how the Jacobi rope contact
-            pass shares corrections (``ropecollision.py``).
 
     Fields:
         w: (n,) f32, 1/kg, inverse mass for this frame (0 while driven).
@@ -110,11 +153,14 @@ class XPBDSolver:
             contacts, used by the chains and the velocity pass.
     """
 
-    def __init__(self, model: Model, state: State, control: Control, *, gravity, ground=None, objects=None,
-                 iterations: int = 1, self_collision_every: int = 1, chain_sweeps: int = 1,
-                 chain_tolerance: float = 1e-3, rope_contacts: str = "average",
-                 fuse_iterations: int | None = None, cloth_joint: int = 0, cloth_joint_every: int = 1,
-                 prestabilize: bool = False, rope_inelastic: bool = False) -> None:
+    def __init__(self, model: Model, state: State, control: Control, config: SolverConfig = SolverConfig(),
+                 *, objects=None) -> None:
+        cfg = self.config = config
+        gravity, ground, iterations = cfg.gravity, cfg.ground, cfg.iterations
+        self_collision_every, chain_sweeps, chain_tolerance = cfg.self_collision_every, cfg.chain_sweeps, cfg.chain_tolerance
+        rope_contacts, fuse_iterations = cfg.rope_contacts, cfg.fuse_iterations
+        cloth_joint, cloth_joint_every = cfg.cloth_joint, cfg.cloth_joint_every
+        prestabilize, rope_inelastic = cfg.prestabilize, cfg.rope_inelastic
         self.model = model
         self.st = state
         self.ctl = control
