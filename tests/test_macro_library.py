@@ -131,3 +131,8 @@ def test_the_granny_and_the_square_share_one_definition():
     for name in ("granny_knot", "square_knot", "self_knot"):
         text = (ROOT / "levels" / f"{name}.yaml").read_text()
         assert "macros/knots.yaml" in text and "\nmacros:" not in text
+
+
+def test_include_cannot_be_overridden(tmp_path):
+    with pytest.raises(LevelError, match="'include' cannot be overridden"):
+        load_level(_write(tmp_path), {"include": ["lib/other.yaml"]})

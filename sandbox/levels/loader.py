@@ -168,7 +168,12 @@ def check_level_text(
     extra = [*allowed_dirs(), *[pathlib.Path(d) for d in mesh_dirs]]
     libs = include.gather(doc.data, base, extra)
     findings += libs.findings
-    overridden, problems = apply_overrides(doc.data, overrides or {})
+    overrides = dict(overrides or {})
+    for key in [k for k in overrides if k.split(".")[0] == "include"]:
+        del overrides[key]
+        findings.append(Finding((), f"override {key!r}: 'include' cannot be overridden (libraries are read "
+                                    "before overrides apply); set the macros themselves, e.g. macros.NAME.steps.0..."))
+    overridden, problems = apply_overrides(doc.data, overrides)
     findings += problems
     level, found = _validate(doc.data, base, registry, extra)
     findings += found
