@@ -46,7 +46,7 @@ class SurfaceGeodesics:
     Preparation (once): optional convex hull, clean-up and conforming
     refinement to ``target_edge`` (see ``mesh_prep.prepare_mesh``), an AABB tree
     for projections, a KD-tree of vertices, the routing graph, the geodesic
-    tracer and the connected components. Each ``between`` query (and the
+    tracer. Each ``between`` query (and the
     final join of ``trace_to``) inserts its end points as vertices into a copy
     of the face list and builds an edge-flip solver on it (about 50 ms per
     20k faces); end points within 0.1% of the mean edge of a vertex or an
@@ -78,14 +78,18 @@ class SurfaceGeodesics:
         self.mesh = prepare_mesh(mesh, hull=hull, target_edge=target_edge)
         self.hull_reason = ""
         self.is_hull = bool(hull)
-        parts = 1 if hull else _parts(self.mesh)
+        self._V = np.ascontiguousarray(self.mesh.vertices, dtype=np.float64)
+        self._F = np.ascontiguousarray(self.mesh.faces, dtype=np.int64)
+        self._graph = surface_graph(self._V, self._F)
+        parts = connected_components(self._graph, directed=False)[0]
         if parts > 1:  # a geodesic cannot go from one part to another: the parts are merged by their hull
             self.hull_reason = (f"the mesh is {parts} separate parts; its target lines follow the convex hull "
                                 "that joins them")
             self.mesh = prepare_mesh(mesh, hull=True, target_edge=target_edge)
             self.is_hull = True
-        self._V = np.ascontiguousarray(self.mesh.vertices, dtype=np.float64)
-        self._F = np.ascontiguousarray(self.mesh.faces, dtype=np.int64)
+            self._V = np.ascontiguousarray(self.mesh.vertices, dtype=np.float64)
+            self._F = np.ascontiguousarray(self.mesh.faces, dtype=np.int64)
+            self._graph = surface_graph(self._V, self._F)
         self.face_normals = np.asarray(self.mesh.face_normals, dtype=np.float64)
         self.mean_edge = float(self.mesh.edges_unique_length.mean())
         self.diagonal = float(np.linalg.norm(self.mesh.extents))
@@ -95,12 +99,10 @@ class SurfaceGeodesics:
         self._aabb = igl.AABB()
         self._aabb.init(self._V, self._F)
         self._kdtree = cKDTree(self._V)
-        self._graph = surface_graph(self._V, self._F)
         try:
             self._tracer = pp3d.GeodesicTracer(self._V, self._F)
         except RuntimeError as err:  # geometry-central rejects non-manifold vertices
             raise ValueError(f"mesh is not a manifold surface: {err}") from err
-        self._component = connected_components(self._graph, directed=False)[1]
 
     # ------------------------------------------------------------------ points
 
@@ -166,9 +168,6 @@ class SurfaceGeodesics:
 
         Returns:
             (k, 3) polyline from p to q (m).
-
-        Raises:
-            ValueError: The points lie on different connected components.
         """
         V, F, (ip, iq) = self._with_vertices([p, q])
         if ip == iq:
@@ -368,14 +367,8 @@ class SurfaceGeodesics:
         return (base + links.tocsr()).tocsr()
 
     def _with_vertices(self, points) -> tuple[np.ndarray, np.ndarray, list[int]]:
-        """Copy of the mesh with the projections of ``points`` inserted as vertices.
-
-        Raises:
-            ValueError: The points lie on different connected parts of the mesh.
-        """
+        """Copy of the mesh with the projections of ``points`` inserted as vertices (one part: see the class)."""
         xs, faces, barys = self.project(np.asarray(points, dtype=np.float64))
-        if len(set(self._component[self._F[faces, 0]].tolist())) > 1:
-            raise ValueError("the points lie on different connected parts of the mesh")
         V, F = self._V, self._F
         touched: list[int] = []
         ids = []
@@ -387,12 +380,6 @@ class SurfaceGeodesics:
             touched += changed
             ids.append(vid)
         return np.ascontiguousarray(V), np.ascontiguousarray(F), ids
-
-
-def _parts(mesh: trimesh.Trimesh) -> int:
-    """Connected parts of a prepared mesh (through its edges)."""
-    V = np.asarray(mesh.vertices, dtype=np.float64)
-    return int(connected_components(surface_graph(V, np.asarray(mesh.faces, dtype=np.int64)), directed=False)[0])
 
 
 # ---------------------------------------------------------------------- polylines
