@@ -8,13 +8,58 @@ architecture and raises for a different one.
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
+import weakref
 
 import taichi as ti
 
 ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
 
-_state: dict = {"arch": None, "requested": None, "fast_compile": False}
+_state: dict = {"arch": None, "requested": None, "fast_compile": False, "debug": False}
+
+_open: "weakref.WeakSet" = weakref.WeakSet()
+"""The worlds built and not yet closed (``release`` refuses while any is open)."""
+
+
+def opened(world) -> None:
+    """Count ``world`` as open until ``closed(world)``."""
+    _open.add(world)
+
+
+def closed(world) -> None:
+    """``world`` no longer holds Taichi fields."""
+    _open.discard(world)
+
+
+class RuntimeBusyError(RuntimeError):
+    """The runtime was to be released while worlds still use it."""
+
+
+def release() -> bool:
+    """Free every kernel and field Taichi holds; the next world initialises it again.
+
+    Taichi compiles a world's kernels for that world's own fields and keeps
+    them until the runtime is reset: each load and close of a level leaves
+    about 5 MB behind (docs/benchmarks.md, "Load and close"). A host that
+    loads many levels in one process calls this between them, after closing
+    every world; it costs about 0.15 s (kernels come back from the on-disk
+    cache). The backend and compile settings stay what they were.
+
+    Returns:
+        True if a runtime was released, False if none was running.
+
+    Raises:
+        RuntimeBusyError: a world that can still be reached is open (its fields would be freed under it).
+    """
+    if _state["arch"] is None:
+        return False
+    gc.collect()  # a world nobody can reach any more is not in the way
+    if len(_open):
+        raise RuntimeBusyError(f"{len(_open)} world(s) still open; close them before releasing the runtime")
+    ti.reset()
+    _state["arch"] = None
+    return True
 
 
 _deferred: list | None = None
@@ -132,6 +177,10 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
     """
     if arch not in ARCHES:
         raise ValueError(f"arch {arch!r} is not allowed; allowed: {', '.join(ARCHES)}")
+    if _state["arch"] is None and _state["requested"] is not None:  # released: the settings chosen before
+        arch = _state["requested"] if arch == "auto" else arch
+        fast_compile = _state["fast_compile"] if fast_compile is None else fast_compile
+        debug = debug or _state["debug"]
     if fast_compile is None:
         fast_compile = _env_flag("SANDBOX_FAST_COMPILE")
     if _state["arch"] is not None:
@@ -169,6 +218,7 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
     _state["arch"] = running
     _state["requested"] = arch
     _state["fast_compile"] = bool(fast_compile)
+    _state["debug"] = bool(debug)
     return running
 
 

@@ -97,9 +97,13 @@ class World:
             self.control = self.model.control()
             self.solver = XPBDSolver(self.model, self.state, self.control,
                                      SolverConfig.of_level(scene, sim, self.iterations), objects=self.objects)
+        runtime.opened(self)
         self.moving = [k for k, o in enumerate(scene.objects) if o.motion is not None]
         # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).
         self.rope_motions = []
+        self.attachments: list[dict] = []  # held particles that ride on a rope (see attach)
+        self.carried_ropes = {spec.name for spec in scene.ropes if spec.motion is not None}
+        """Ropes whose pins a scripted motion carries: a hold placed relative to one rides on it."""
         for spec, rng in zip(scene.ropes, self.data.ropes):
             if spec.motion is not None:
                 pins = self.data.pins[(self.data.pins >= rng.start) & (self.data.pins < rng.end)]
@@ -329,6 +333,7 @@ class World:
         if self._fields is not None:
             self._fields.destroy()
             self._fields = None
+            runtime.closed(self)
             gone = _Closed(self.level.name)
             self.model = self.state = self.control = self.solver = gone
             if self.objects is not None:
@@ -488,12 +493,12 @@ class World:
         j = int(np.argmin(np.linalg.norm(xr[:-1] + t[:, None] * seg - p, axis=1)))
         e1, e2, e3 = _rod_frame(seg[j], None)
         local = np.array([(p - xr[j]) @ e for e in (e1, e2, e3)])
-        self.attachments = [a for a in getattr(self, "attachments", []) if a["particle"] != particle]
+        self.attachments = [a for a in self.attachments if a["particle"] != particle]
         self.attachments.append({"particle": int(particle), "rope": rope, "rod": j, "local": local, "e2": e2})
 
     def _follow_attachments(self) -> None:
         kept = []
-        for a in getattr(self, "attachments", []):
+        for a in self.attachments:
             if not self.control.is_driven([a["particle"]])[0]:
                 continue  # released: the attachment ends
             xr = self.rope_positions(a["rope"]).astype(np.float64)

@@ -156,6 +156,20 @@ def test_an_attached_particle_keeps_its_place_on_a_moving_rope():
     assert not w.attachments  # a released particle is no longer attached
 
 
+def test_a_winding_around_a_carried_rope_rides_on_it():
+    """Once wound around a T that a motion carries, the last wound particle's hold rides on T (World.attach);
+    around a T that stays (test_winding_exit_...), the hold stays where it was laid."""
+    motion = {"keyframes": [{"time": 0.0, "position": [0, 0, 0]}, {"time": 4.0, "position": [0, 0, 0.04]}]}
+    w, m, _ = _wind({}, overrides={"scene.ropes.0.motion": motion})
+    last = m._particle(m.n - 1)
+    assert [(a["particle"], a["rope"]) for a in w.attachments] == [(last, "T")]
+    before = w.control.target([last])[0].astype(float)
+    for _ in range(30):
+        w.step()
+    moved = w.control.target([last])[0] - before
+    assert moved[2] == pytest.approx(0.04 * 30 / 60 / 4, rel=0.2)  # carried with T, 5 mm along z
+
+
 @pytest.mark.slow
 def test_rope_wind_moving_reaches_its_criteria_headless():
     s = _run("rope_wind_moving.yaml")
@@ -195,9 +209,10 @@ def test_winding_without_carry_lets_the_tail_go():
     assert held and not any(held[1:])
 
 
-def _wind(extra: dict, until_k: int | None = None):
+def _wind(extra: dict, until_k: int | None = None, overrides: dict | None = None):
     """rope_wind with extra Winding parameters, run until the winding is done (or has laid ``until_k`` particles)."""
-    w = _shipped_world("rope_wind.yaml", {"fsm.1.timeout": 300, **{f"fsm.1.with.{k}": v for k, v in extra.items()}})
+    w = _shipped_world("rope_wind.yaml", {"fsm.1.timeout": 300, **{f"fsm.1.with.{k}": v for k, v in extra.items()},
+                                          **(overrides or {})})
     m, i0_held_midway = None, None
     while w.fsm.state != "2:Wait" and not w.fsm.finished:
         w.step()
@@ -232,6 +247,7 @@ def test_winding_exit_lays_the_tail_straight_out_of_the_turns(square):
     # The last one is held at the line's end (the others are let go as the next one is laid).
     np.testing.assert_allclose(x[exit_particles[-1]], line[-1], atol=0.25 * m.c.rod_length)
     assert w.control.is_driven([exit_particles[-1]])[0] and not w.control.is_driven(exit_particles[1:-1]).any()
+    assert not w.attachments  # T stays still: the last hold stays where it was laid
     # The knot's record (Tightening pulls away from its centre) is the turns alone.
     rec = w.record.windings[("C", "T")].particles
     assert rec.max() == m._particle(turns - 1) and rec.min() == m._particle(0)

@@ -24,6 +24,7 @@ import pydantic
 from sandbox.record import WindingRecord
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.knotting import rope_holds, within_holds
+from sandbox.model.strands import parse_strand
 
 
 STUCK_FRAMES = 15
@@ -45,7 +46,6 @@ class WindingParams(Params):
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m/s of the driven particle
     tolerance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.25  # fraction of C's rod length
     straighten: Annotated[float, pydantic.Field(ge=0)] = 0.0  # m of T held straight around X_T (paper §4.2)
-    follow: bool = False  # once wound, the last particle's hold rides on T (a target that keeps moving)
     # The hand keeps C's tip and carries the tail around T along G's tangent
     # (fraction of the tail's length it is held out by); 0 lets the tail dangle.
     carry_tail: Annotated[float, pydantic.Field(ge=0, lt=1)] = 0.0
@@ -356,10 +356,12 @@ class Winding(Maneuver):
     def stop(self) -> None:
         # The last wound particle stays held (paper §4.2: constraining it keeps
         # the winding), and so do a carried tip and T's straightened run, so
-        # that the winding keeps its shape until a Tightening or Release.
+        # that the winding keeps its shape until a Tightening or Release. On
+        # a T that a scripted motion carries, the hold rides on T: held still,
+        # it would unwind the turns as T moves away.
         if self.k < self.n:
             self.world.control.release([self._particle(self.k)])
-        elif self.params.follow:
+        elif parse_strand(self.params.target)[0] in self.world.carried_ropes:
             self.world.attach(self._particle(self.n - 1), self.params.target)
 
     def metrics(self) -> dict[str, float]:
