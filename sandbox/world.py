@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from sandbox import runtime
+from sandbox.levels.schema import default_max_substeps
 from sandbox.model.builder import ClothRange, ModelBuilder, RopeRange
 from sandbox.model.pose import euler_matrix, keyframe_pose
 from sandbox.record import ManeuverRecord
@@ -29,6 +30,10 @@ def _rod_frame(direction: np.ndarray, e2_prev: np.ndarray | None):
     e2 /= np.linalg.norm(e2)
     return e1, e2, np.cross(e1, e2)
 
+
+SUBSTEP_TRAVEL = 0.25
+"""The farthest a particle may move in one substep, in rest lengths (a cloth's spacing, a rope's rod): a frame
+takes more substeps while something moves faster (see ``World.frame_substeps``)."""
 
 STRAIN_BLOWUP = 4.0
 """Relative stretch of a rod or cloth edge (a length five times its rest) that makes a frame count as blown up."""
@@ -69,8 +74,7 @@ class World:
         self.substeps = int(sim.substeps)
         self.iterations = int(sim.iterations)
         self.max_retries = int(sim.max_retries)
-        self.max_substeps = max(self.substeps, int(sim.max_substeps or self.substeps))
-        self.substep_travel = float(sim.substep_travel)
+        self.max_substeps = max(self.substeps, int(sim.max_substeps or default_max_substeps(self.substeps)))
         self.explode_speed = 200.0  # m/s: faster than anything a level should do
         scene = level.scene
         self.ground_height = None if scene.ground is None else float(scene.ground.height)
@@ -264,9 +268,9 @@ class World:
         return sum(k * f for k, f in self.substep_frames.items()) / frames if frames else float(self.substeps)
 
     def frame_substeps(self, v: np.ndarray) -> int:
-        """Substeps for the frame that starts with velocities ``v``: ``sim.substeps``, or with
-        ``sim.max_substeps`` as many as keep the fastest particle's travel per substep within
-        ``sim.substep_travel`` of the finest rest length (a cloth's spacing, a rope's rod).
+        """Substeps for the frame that starts with velocities ``v``: as many as keep the fastest
+        particle's travel per substep within ``SUBSTEP_TRAVEL`` of the finest rest length (a cloth's
+        spacing, a rope's rod), clamped to [``sim.substeps``, ``max_substeps``].
 
         The speed is the largest now plus gravity over the frame; O(n) over the velocities that the
         frame's snapshot reads back anyway.
@@ -277,7 +281,7 @@ class World:
         if not np.isfinite(vmax):
             return self.max_substeps
         reach = (vmax + self._gravity * self.dt) * self.dt
-        want = int(np.ceil(reach / (self.substep_travel * self._finest)))
+        want = int(np.ceil(reach / (SUBSTEP_TRAVEL * self._finest)))
         return min(self.max_substeps, max(self.substeps, want))
 
     def step_physics(self) -> dict:

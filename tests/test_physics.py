@@ -18,8 +18,11 @@ G = 9.81
 
 
 def _rod_level(p0, p1, *, pins=(), ground="false", gravity=(0.0, -G, 0.0), fps=60, substeps=10,
-               max_retries=3, radius=1e-3, adaptive="") -> str:
-    """YAML of a one-rod rope (two particles) without damping or objects."""
+               max_retries=3, radius=1e-3, adaptive: str | None = None) -> str:
+    """YAML of a one-rod rope (two particles) without damping or objects; a fixed substep count unless
+    ``adaptive`` gives the ``sim`` keys that make it adaptive ("" for the engine's default)."""
+    if adaptive is None:
+        adaptive = f", max_substeps: {substeps}"
     pins_yaml = "[" + ", ".join(pins) + "]"
     return f"""
 version: 1
@@ -91,20 +94,21 @@ def _spy_substeps(monkeypatch, world) -> list[int]:
 
 
 def test_adaptive_substeps_follow_the_speed_and_keep_free_fall_exact(monkeypatch):
-    """With ``max_substeps`` a frame takes ceil((v + g dt) dt / (travel h)) substeps, clamped to
-    [substeps, max_substeps] (v: the largest speed at the frame's start, h: the rod length): a falling rod
+    """A frame takes ceil((v + g dt) dt / (travel h)) substeps, clamped to [substeps, max_substeps]
+    (v: the largest speed at the frame's start, h: the rod length, travel: a quarter): a falling 2 mm rod
     (v = g t) goes 8 (the floor), 11, 17, ..., 39, then 40 (the cap). Each frame is then symplectic Euler
-    with its own step, which the fall matches up to float32 rounding; without ``max_substeps`` the count
-    stays fixed."""
-    fps, travel, h, frames = 60, 0.05, 0.01, 12
+    with its own step, which the fall matches up to float32 rounding. Unset, the cap is 4 x substeps;
+    ``max_substeps: substeps`` keeps the count fixed."""
+    from sandbox.world import SUBSTEP_TRAVEL
+
+    fps, h, frames = 60, 0.002, 12
     dt = 1.0 / fps
-    sim = _sandbox(_rod_level((0.0, 0.0, 0.0), (h, 0.0, 0.0), fps=fps, substeps=8,
-                              adaptive=f", max_substeps: 40, substep_travel: {travel}"))
+    sim = _sandbox(_rod_level((0.0, 0.0, 0.0), (h, 0.0, 0.0), fps=fps, substeps=8, adaptive=", max_substeps: 40"))
     tried = _spy_substeps(monkeypatch, sim.world)
     want, rows = [], []
     y, v, bound, steps = 0.0, 0.0, 0.0, []
     for f in range(frames):
-        n = min(40, max(8, math.ceil((abs(v) + G * dt) * dt / (travel * h))))
+        n = min(40, max(8, math.ceil((abs(v) + G * dt) * dt / (SUBSTEP_TRAVEL * h))))
         want.append(n)
         for _ in range(n):  # symplectic Euler with step dt / n: v -= g h', y += v h'
             v -= G * dt / n
@@ -124,7 +128,13 @@ def test_adaptive_substeps_follow_the_speed_and_keep_free_fall_exact(monkeypatch
     assert sim.world.substep_frames == {n: want.count(n) for n in set(want)}
     assert sim.world.mean_substeps == pytest.approx(sum(want) / frames)
 
-    fixed = _sandbox(_rod_level((0.0, 0.0, 0.0), (h, 0.0, 0.0), fps=fps, substeps=8))
+    default = _sandbox(_rod_level((0.0, 0.0, 0.0), (h, 0.0, 0.0), fps=fps, substeps=8, adaptive=""))
+    tried = _spy_substeps(monkeypatch, default.world)
+    for _ in range(frames):
+        default.step()
+    assert tried == [min(n, 32) for n in want]  # the default cap: 4 x 8
+
+    fixed = _sandbox(_rod_level((0.0, 0.0, 0.0), (h, 0.0, 0.0), fps=fps, substeps=8, adaptive=", max_substeps: 8"))
     tried = _spy_substeps(monkeypatch, fixed.world)
     for _ in range(frames):
         fixed.step()
@@ -341,7 +351,7 @@ def test_chain_sweeps_bring_cloth_over_box_edges_and_vertices_to_length():
         key = sweeps, joint, most
         overrides = {"scene.cloths.0.resolution": [res, res], "scene.cloths.0.size": [size, size],
                      "sim.chain_sweeps": sweeps, "sim.cloth_joint": joint, "sim.frames": 90,
-                     "sim.max_substeps": most, "sim.substep_travel": 0.25}
+                     "sim.max_substeps": most}
         with Sandbox.from_level(LEVELS / "drape_box.yaml", arch="cpu", overrides=overrides) as sim:
             run_worst[key] = 0.0
             for f in range(90):

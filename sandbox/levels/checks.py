@@ -84,7 +84,7 @@ def check_names(data: Any) -> list[Finding]:
 
 
 def check_sim(data: Any) -> list[Finding]:
-    """An adaptive substep count needs room above the fixed one: ``max_substeps >= substeps``."""
+    """The substep count adapts between ``substeps`` and ``max_substeps``: ``max_substeps >= substeps``."""
     sim = data.get("sim")
     if not isinstance(sim, dict):
         return []
@@ -94,8 +94,8 @@ def check_sim(data: Any) -> list[Finding]:
     if not all(isinstance(v, int) and not isinstance(v, bool) for v in (most, least)) or most >= least:
         return []
     return [Finding(("sim", "max_substeps"),
-                    f"max_substeps ({most}) is below substeps ({least}): allowed is {least} to 200 (at least substeps), "
-                    "or no max_substeps for a fixed count")]
+                    f"max_substeps ({most}) is below substeps ({least}): allowed is {least} to 200 (at least substeps; "
+                    "equal to it for a fixed count), or no max_substeps for the default")]
 
 
 def check_camera(data: Any) -> list[Finding]:
@@ -223,6 +223,7 @@ def _mesh_file_problem(mesh: str, base_dir: pathlib.Path, extra_dirs: Iterable[p
 def check_resources(data: Any, limits) -> list[Finding]:
     """Particles, frames x substeps and estimated memory within ``limits`` (a ``limits.Limits``)."""
     from sandbox.levels.limits import BYTES_PER_PARTICLE, particle_count  # noqa: PLC0415
+    from sandbox.levels.schema import Sim, default_max_substeps  # noqa: PLC0415
 
     out = []
     how = "raise it with --limit {0}=N (or SANDBOX_LIMITS='{0}=N')"
@@ -237,7 +238,8 @@ def check_resources(data: Any, limits) -> list[Finding]:
     sim = data.get("sim") if isinstance(data, dict) else None
     sim = sim if isinstance(sim, dict) else {}
     try:
-        sub = max(int(sim.get("substeps", 10)), int(sim.get("max_substeps") or 0))
+        fixed = int(sim.get("substeps", Sim.model_fields["substeps"].default))
+        sub = max(fixed, int(sim.get("max_substeps") or default_max_substeps(fixed)))
         steps = int(sim.get("frames", 240)) * sub
     except (TypeError, ValueError):
         steps = None

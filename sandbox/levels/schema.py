@@ -339,6 +339,15 @@ class Scene(_Model):
         return out
 
 
+ADAPTIVE_SUBSTEPS = 4
+"""Unless ``sim.max_substeps`` says otherwise, a frame may take up to this many times ``sim.substeps``."""
+
+
+def default_max_substeps(substeps: int) -> int:
+    """The most substeps a frame takes when ``sim.max_substeps`` is unset."""
+    return min(200, ADAPTIVE_SUBSTEPS * int(substeps))
+
+
 class Sim(_Model):
     """Time stepping: frames per second, substeps per frame, solver iterations.
 
@@ -366,12 +375,13 @@ class Sim(_Model):
     columns of each inextensible cloth together, after the chain sweeps of
     every iteration (0: none; see ``sandbox/solvers/cloth_joint.py``), on
     every ``cloth_joint_every``-th substep of a frame and on its last one.
-    ``max_substeps`` (at least ``substeps``) makes the substep count adaptive:
-    each frame takes as many as keep the fastest particle (its speed at the
-    end of the last frame plus gravity over one frame) within
-    ``substep_travel`` of the finest rest length (a cloth's spacing, a rope's
-    rod) per substep, never fewer than ``substeps`` nor more than
-    ``max_substeps``. Unset, every frame takes ``substeps``.
+    The substep count adapts to the motion: each frame takes as many as
+    keep the fastest particle (its speed at the end of the last frame plus
+    gravity over one frame) within a quarter of the finest rest length (a
+    cloth's spacing, a rope's rod) per substep, never fewer than
+    ``substeps`` nor more than ``max_substeps`` (unset: 4 x ``substeps``,
+    at most 200). A host that must bound a frame's cost sets
+    ``max_substeps`` lower; ``max_substeps: <substeps>`` fixes the count.
     """
 
     fps: between(int, 1, 1000) = 60
@@ -390,7 +400,6 @@ class Sim(_Model):
     cloth_joint: between(int, 0, 64) = 0
     cloth_joint_every: between(int, 1, 200) = 1
     max_substeps: between(int, 1, 200) | None = None
-    substep_travel: between(float, 0.01, 1.0) = 0.35
 
 
 class Budget(_Model):
