@@ -33,6 +33,10 @@ STUCK_GAIN = 0.01
 """Closing on the target by less than this fraction of a rod in a frame counts as not closing."""
 MAX_TICKS_PER_PARTICLE = 90
 """Frames a wound particle may take to reach its target before the winding fails."""
+TAIL_SPEED = 1.0
+"""m/s: the fastest a carried tail's tip moves (``carry_tail``): a hand's pace, which swings the tip around T with
+the winding without whipping the tail."""
+
 
 class WindingParams(Params):
     active: str  # rope C
@@ -49,7 +53,6 @@ class WindingParams(Params):
     # The hand keeps C's tip and carries the tail around T along G's tangent
     # (fraction of the tail's length it is held out by); 0 lets the tail dangle.
     carry_tail: Annotated[float, pydantic.Field(ge=0, lt=1)] = 0.0
-    tail_speed: Annotated[float, pydantic.Field(gt=0)] = 1.5  # m/s of the carried tip
     # m of C after the turns laid one particle at a time on a straight line
     # from G's end along its last tangent (at most to C's tip): the tail is
     # threaded out of the turns the way G leaves them, rather than left to
@@ -336,7 +339,7 @@ class Winding(Maneuver):
         The tail then sweeps around T with the winding instead of dangling on
         whichever side gravity takes it, so the tail leaves the knot the way
         the winding goes (the knot's identity does not depend on where it
-        falls). The tip moves at most ``tail_speed``.
+        falls). The tip moves at most ``TAIL_SPEED``.
         """
         p, w = self.params, self.world
         k = min(self.k, self.n - 1)
@@ -349,7 +352,7 @@ class Winding(Maneuver):
         goal = target + (p.carry_tail * left / norm) * tangent
         d = goal - self.tip_pos
         dist = float(np.linalg.norm(d))
-        step = p.tail_speed / w.fps
+        step = TAIL_SPEED / w.fps
         self.tip_pos = goal if dist <= step else self.tip_pos + d * (step / dist)
         w.control.drive([self.tip], self.tip_pos[None, :])
 
