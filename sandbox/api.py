@@ -59,7 +59,11 @@ class Sandbox:
         return cls(level, base_dir=path.parent, arch=arch, **kwargs)
 
     def close(self) -> None:
-        """Free the level's fields (Taichi holds at most 512 field trees per process; each level takes one)."""
+        """Free the level's fields (Taichi holds at most 512 field trees per process; each level takes one).
+
+        The kernels compiled for it stay until ``sandbox.runtime.release()``, which frees them once every
+        level is closed.
+        """
         self.world.close()
 
     def __enter__(self) -> "Sandbox":

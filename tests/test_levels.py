@@ -161,6 +161,25 @@ def test_chain_sweeps_range_and_round_trip():
     assert load_level_from_string(dump_level(level)) == level
 
 
+def test_chain_sweeps_default_to_three_with_an_inextensible_cloth_and_one_for_ropes():
+    """Unset, the solver takes CLOTH_CHAIN_SWEEPS where an inextensible cloth is (rows and columns re-solved over
+    an object's edges), one in a scene of ropes or of stretchy cloth; a level's own count is kept."""
+    from sandbox.levels.schema import CLOTH_CHAIN_SWEEPS
+    from sandbox.solvers.xpbd import SolverConfig
+
+    def sweeps(text):
+        level = load_level_from_string(text)
+        return SolverConfig.of_level(level.scene, level.sim).chain_sweeps
+
+    cloth = "  cloths:\n    - {name: c, resolution: [4, 3], size: [1, 1], center: [0, 1, 0]%s}\nmacros:"
+    assert CLOTH_CHAIN_SWEEPS == 3
+    assert sweeps(BASE) == 1
+    assert sweeps(BASE.replace("macros:", cloth % "")) == 3
+    assert sweeps(BASE.replace("macros:", cloth % ", stretch_compliance: 1.0e-4")) == 1
+    own = (cloth % "").replace("\nmacros:", "\nsim: {chain_sweeps: 2}\nmacros:")
+    assert sweeps(BASE.replace("macros:", own)) == 2
+
+
 def test_cloth_joint_range_and_round_trip():
     """``sim.cloth_joint`` takes 0..64 CG iterations and ``sim.cloth_joint_every`` 1..200; both survive dump and load."""
     errs = errors_of(BASE.replace("macros:", "sim: {cloth_joint: 65, cloth_joint_every: 0}\nmacros:"))

@@ -339,6 +339,9 @@ class Scene(_Model):
         return out
 
 
+CLOTH_CHAIN_SWEEPS = 3
+"""Chain sweeps per iteration in a scene with an inextensible cloth, unless ``sim.chain_sweeps`` says otherwise."""
+
 ADAPTIVE_SUBSTEPS = 4
 """Unless ``sim.max_substeps`` says otherwise, a frame may take up to this many times ``sim.substeps``."""
 
@@ -357,7 +360,11 @@ class Sim(_Model):
     many times each iteration alternates the exact chain step (ropes, cloth
     rows and columns) with the contacts; sweeps after the first re-solve
     only the chains with a rod still off its length by more than
-    ``chain_tolerance`` (relative). ``rope_contacts`` is how the Jacobi rope
+    ``chain_tolerance`` (relative). Unset, a scene with an inextensible
+    cloth takes ``CLOTH_CHAIN_SWEEPS`` (rows and columns disagree where the
+    cloth crosses an object's edges and vertices) and a scene of ropes one
+    (a rope's chain is solved exactly in one); 1 trades cloth stretch for
+    frame time. ``rope_contacts`` is how the Jacobi rope
     contact pass shares corrections among a particle's contacts: ``average``
     (per particle), ``balanced`` (per contact, equal and opposite) or ``split``
     (mass splitting: equal and opposite at the full rate; see
@@ -392,7 +399,7 @@ class Sim(_Model):
     frames: between(int, 1, 1_000_000) = 240
     max_retries: between(int, 0, 10) = 3
     self_collision_every: between(int, 1, 16) = 1
-    chain_sweeps: between(int, 1, 16) = 1
+    chain_sweeps: between(int, 1, 16) | None = None
     chain_tolerance: between(float, 0.0, 1.0) = 1e-3
     rope_contacts: RopeContacts = "average"
     prestabilize: Bool = False

@@ -121,11 +121,15 @@ class SolverConfig:
     @classmethod
     def of_level(cls, scene, sim, iterations: int | None = None) -> "SolverConfig":
         """The configuration a level's ``scene`` and ``sim`` ask for (``iterations``: the level's, if None)."""
+        from sandbox.levels.schema import CLOTH_CHAIN_SWEEPS  # noqa: PLC0415 (the level's own default)
+
         ground = None if scene.ground is None else (float(scene.ground.height), float(scene.ground.friction))
         return cls(
             gravity=tuple(float(g) for g in scene.gravity), ground=ground,
             iterations=int(sim.iterations if iterations is None else iterations),
-            self_collision_every=sim.self_collision_every, chain_sweeps=sim.chain_sweeps,
+            self_collision_every=sim.self_collision_every,
+            chain_sweeps=sim.chain_sweeps or (CLOTH_CHAIN_SWEEPS if any(c.stretch_compliance == 0.0
+                                                                       for c in scene.cloths) else 1),
             chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts, cloth_joint=sim.cloth_joint,
             cloth_joint_every=sim.cloth_joint_every, prestabilize=sim.prestabilize,
             rope_inelastic=sim.rope_inelastic,
