@@ -74,6 +74,27 @@ def test_mesh_file_is_scaled_and_recentred(tmp_path):
     assert np.allclose(m.bounds, [[-0.25, 0.0, -0.75], [0.25, 1.0, 0.75]])
 
 
+def test_a_mesh_file_is_read_once_until_it_changes(tmp_path, monkeypatch):
+    """A level's check and its world read a mesh file once; each gets a copy of its own; a changed file is
+    read again."""
+    reads = []
+    load = trimesh.load
+    monkeypatch.setattr(trimesh, "load", lambda *a, **k: reads.append(a[0]) or load(*a, **k))
+    trimesh.creation.box(extents=[1.0, 2.0, 3.0]).export(tmp_path / "thing.obj")
+    a = build_mesh("mesh", {"path": "thing.obj"}, base_dir=tmp_path)
+    b = build_mesh("mesh", {"path": "thing.obj"}, base_dir=tmp_path)
+    assert len(reads) == 1 and a is not b and np.array_equal(a.vertices, b.vertices)
+    a.apply_translation([1.0, 0.0, 0.0])  # a caller's change stays its own
+    assert np.allclose(build_mesh("mesh", {"path": "thing.obj"}, base_dir=tmp_path).bounds[0, 0], -0.5)
+    assert len(build_mesh("mesh", {"path": "thing.obj", "scale": 2.0}, base_dir=tmp_path).faces) == 12
+    assert len(reads) == 2  # another scale is another mesh
+    trimesh.creation.box(extents=[4.0, 2.0, 3.0]).export(tmp_path / "thing.obj")
+    import os
+    os.utime(tmp_path / "thing.obj", ns=(1, 1))  # a new modification time, whatever the clock's resolution
+    assert np.allclose(build_mesh("mesh", {"path": "thing.obj"}, base_dir=tmp_path).bounds[0, 0], -2.0)
+    assert len(reads) == 3
+
+
 def test_missing_mesh_file_names_the_path(tmp_path):
     """A missing mesh file raises FileNotFoundError naming the path."""
     with pytest.raises(FileNotFoundError, match="nothere.stl"):

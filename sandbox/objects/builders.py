@@ -389,14 +389,27 @@ def _mesh_file(p: dict, base_dir: pathlib.Path | None) -> trimesh.Trimesh:
         path = pathlib.Path(base_dir or pathlib.Path.cwd()) / path
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
-    try:
-        mesh = trimesh.load(str(path), force="mesh")
-    except Exception as err:  # trimesh raises many kinds for unreadable files
-        raise ValueError(f"shape 'mesh': cannot read {path}: {err}") from err
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"shape 'mesh': {path} holds no triangles")
-    mesh.apply_scale(float(p["scale"]))
-    return _rest_on_ground(_outward(mesh))
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size, float(p["scale"]))
+    if key not in _MESH_FILES:
+        try:
+            mesh = trimesh.load(str(path), force="mesh")
+        except Exception as err:  # trimesh raises many kinds for unreadable files
+            raise ValueError(f"shape 'mesh': cannot read {path}: {err}") from err
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise ValueError(f"shape 'mesh': {path} holds no triangles")
+        mesh.apply_scale(float(p["scale"]))
+        _MESH_FILES[key] = _rest_on_ground(_outward(mesh))
+        while len(_MESH_FILES) > MESH_FILES_KEPT:
+            _MESH_FILES.pop(next(iter(_MESH_FILES)))
+    else:
+        _MESH_FILES[key] = _MESH_FILES.pop(key)  # most recently used last
+    return _MESH_FILES[key].copy()
+
+
+MESH_FILES_KEPT = 8
+"""Mesh files kept read (a level is checked, then built: its files are read once)."""
+_MESH_FILES: dict[tuple, trimesh.Trimesh] = {}
 
 
 _BUILDERS: dict[str, Callable[[dict], trimesh.Trimesh]] = {
