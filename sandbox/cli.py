@@ -40,9 +40,27 @@ def _limits(a: argparse.Namespace) -> None:
         allow("SANDBOX_MESH_DIRS", str(pathlib.Path(d).resolve()))
 
 
+def _whole(lo: int, hi: int):
+    """An argparse type: a whole number in [lo, hi], else a usage error that says what is allowed."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"{text!r} is not allowed; allowed: a whole number from {lo} to {hi}")
+        return value
+
+    return parse
+
+
 def cmd_run(a: argparse.Namespace) -> int:
     from sandbox.runner import RunOptions, run_level
 
+    if a.out is not None and not a.out.strip():
+        raise UsageError("--out is empty; give a folder (default runs/<level>)")
+    if a.follow is not None and not [n for n in a.follow.split(",") if n.strip()]:
+        raise UsageError("--follow names no rope; give ROPE[,ROPE...]")
     out = pathlib.Path(a.out or pathlib.Path("runs") / pathlib.Path(a.level).stem)
     overrides = _overrides(a.set or [])
     _limits(a)
@@ -187,14 +205,15 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a level headless and write its outputs", parents=[common, limits])
     r.add_argument("level")
     r.add_argument("--out", help="output folder (default runs/<level>)")
-    r.add_argument("--frames", type=int, help="frames to run (default: the level's sim.frames)")
+    r.add_argument("--frames", type=_whole(1, 1_000_000), help="frames to run (default: the level's sim.frames)")
     r.add_argument("--arch", choices=ARCHES, help="Taichi backend (default: the level's sim.arch)")
     r.add_argument("--ply", action="store_true", help="also write final meshes to out/meshes/*.ply")
-    r.add_argument("--frames-every", type=int, metavar="K", help="write out/frames/NNNNN.png every K frames")
+    r.add_argument("--frames-every", type=_whole(0, 1_000_000), metavar="K",
+                   help="write out/frames/NNNNN.png every K frames (0: none)")
     r.add_argument("--video", action="store_true", help="write out/anim.mp4")
     r.add_argument("--gif", action="store_true", help="write out/anim.gif")
-    r.add_argument("--width", type=int, default=640)
-    r.add_argument("--height", type=int, default=480)
+    r.add_argument("--width", type=_whole(16, 8192), default=640, help="pixels of a rendered frame")
+    r.add_argument("--height", type=_whole(16, 8192), default=480, help="pixels of a rendered frame")
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a level value, e.g. sim.substeps=20")
     r.add_argument("--follow", metavar="ROPE[,ROPE...]",
                    help="rendered frames follow the knot of these ropes (close-up; over the level's camera)")
@@ -213,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(fn=cmd_check)
     b = sub.add_parser("bench", help="time levels headless against their budgets and a baseline", parents=[common])
     b.add_argument("levels", nargs="*")
-    b.add_argument("--frames", type=int, default=60)
+    b.add_argument("--frames", type=_whole(1, 1_000_000), default=60)
     b.add_argument("--baseline", help="JSON baseline to compare with")
     b.add_argument("--save", help="write results as a new baseline JSON")
     b.add_argument("--arch", choices=ARCHES, default="cpu")
@@ -236,8 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--shared", action="store_true", help="ray: --out is on a file system every node sees")
     sw.add_argument("--timeout", type=float, default=3600.0, metavar="S",
                     help="seconds before a run is killed and recorded as a timeout (default 3600)")
-    sw.add_argument("--frames", type=int, help="frames per run (default: each level's own)")
-    sw.add_argument("--frames-every", type=int, metavar="K", help="each run writes a PNG every K frames")
+    sw.add_argument("--frames", type=_whole(1, 1_000_000), help="frames per run (default: each level's own)")
+    sw.add_argument("--frames-every", type=_whole(0, 1_000_000), metavar="K",
+                    help="each run writes a PNG every K frames (0: none)")
     sw.add_argument("--retry-errors", action="store_true", help="run again the runs whose row is not 'completed'")
     sw.add_argument("--report", metavar="DIR", help="only re-render the reports and plots of DIR from its tables")
     sw.add_argument("--no-plots", action="store_true", help="tables and reports without plots")

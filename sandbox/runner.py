@@ -143,8 +143,11 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
     from sandbox.levels import LevelError, load_level
 
     path = pathlib.Path(path)
+    overrides = dict(opts.overrides or {})
+    if opts.frames is not None:  # checked like the level's own count: its range and the steps limit
+        overrides["sim.frames"] = int(opts.frames)
     try:
-        level = load_level(path, opts.overrides or None)
+        level = load_level(path, overrides or None)
     except LevelError as exc:
         return EXIT_INVALID, {"status": "invalid", "errors": str(exc)}
     except FileNotFoundError as exc:
@@ -162,7 +165,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         "path": str(path),
         "status": "running",
         "success": False,
-        "frames_planned": int(opts.frames or level.sim.frames),
+        "frames_planned": int(level.sim.frames),
         "frames_run": 0,
         "machine": {"python": platform.python_version(), "platform": platform.platform(),
                     "processor": platform.processor() or platform.machine()},

@@ -76,8 +76,11 @@ def test_bad_options_are_exit_2_in_one_line(tmp_path, capsys):
     """A bad --set, an --out that is a file or cannot be made: exit 2, one line, nothing written."""
     cases = [(["--set", "sim.frames"], "--set: override 'sim.frames' is not of the form key=value"),
              (["--set", "sim.frames=[1,"], "the value is not valid YAML"),
+             (["--set", "sim.frames=1e400"], "got inf (value set by override 'sim.frames')"),
              (["--out", str(TINY)], "exists and is not a folder"),
-             (["--out", str(TINY / "sub")], "cannot write there")]
+             (["--out", str(TINY / "sub")], "cannot write there"),
+             (["--out", ""], "--out is empty"),
+             (["--follow", ","], "--follow names no rope")]
     for extra, text in cases:
         args = ["run", str(TINY), "--quiet", *extra]
         if "--out" not in extra:
@@ -85,7 +88,27 @@ def test_bad_options_are_exit_2_in_one_line(tmp_path, capsys):
         assert main(args) == 2, extra
         err = capsys.readouterr().err
         assert text in err and "Traceback" not in err and len(_lines(err)) == 1, err
+    # A body overridden away: its own line first, then the criteria that named it.
+    assert main(["run", str(TINY), "--quiet", "--out", str(tmp_path / "o"), "--set", "scene.ropes.0=null"]) == 2
+    err = capsys.readouterr().err
+    assert "got None (value set by override 'scene.ropes.0')" in _lines(err)[0] and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("option", "value", "allowed"), [
+    ("--frames", "0", "from 1 to 1000000"), ("--frames", "-1", "from 1 to 1000000"),
+    ("--frames", "100000000000", "from 1 to 1000000"), ("--frames", "abc", "from 1 to 1000000"),
+    ("--frames-every", "-3", "from 0 to 1000000"), ("--width", "-5", "from 16 to 8192"),
+    ("--height", "0", "from 16 to 8192"),
+])
+def test_numeric_options_out_of_range_are_exit_2_and_say_what_is_allowed(option, value, allowed, tmp_path, capsys):
+    """A number of frames, a frame interval or a picture size out of range: exit 2 before anything runs."""
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(TINY), "--quiet", "--out", str(tmp_path / "o"), option, value])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"argument {option}: '{value}' is not allowed; allowed: a whole number {allowed}" in err
+    assert "Traceback" not in err and not (tmp_path / "o").exists()
 
 
 def test_a_reused_out_folder_is_refused_unless_overwrite(tmp_path, capsys):

@@ -209,6 +209,8 @@ def _mesh_file_problem(mesh: str, base_dir: pathlib.Path, extra_dirs: Iterable[p
     if not any(path == r or r in path.parents for r in roots):
         return (f"mesh file {mesh!r} lies outside the level's folder ({base_dir.resolve()}); mesh files must "
                 "be in it or below it, or in a folder allowed with --allow-dir DIR (or SANDBOX_MESH_DIRS)")
+    if path.exists() and not path.is_file():
+        return f"mesh file {mesh!r} is not a file ({path} is a folder or a device); allowed: a mesh file"
     if not path.is_file():
         return (f"mesh file {mesh!r} not found (looked for {path}; paths are relative to the level file's "
                 "folder)")
@@ -241,7 +243,7 @@ def check_resources(data: Any, limits) -> list[Finding]:
         fixed = int(sim.get("substeps", Sim.model_fields["substeps"].default))
         sub = max(fixed, int(sim.get("max_substeps") or default_max_substeps(fixed)))
         steps = int(sim.get("frames", 240)) * sub
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # not whole numbers, or infinite: the schema reports them
         steps = None
     if steps is not None and steps > limits.steps:
         out.append(Finding(("sim",), f"frames x substeps is {steps}; the limit is {limits.steps}: "
@@ -310,11 +312,47 @@ def check_references(data: Any, states: Mapping[str, Any]) -> list[Finding]:
     and ``target`` name ropes or strands ``R[i0:i1]``; ``body`` a rope, strand or
     cloth; ``knot`` a list of those; ``object`` (inside a target) an object.
     """
+    from sandbox.levels.limits import body_sizes  # noqa: PLC0415
     from sandbox.model.strands import parse_strand
 
     names = scene_names(data)
     ropes, cloths, objects = set(names["rope"]), set(names["cloth"]), set(names["object"])
+    rope_n, cloth_n = body_sizes(data)
     out: list[Finding] = []
+
+    def strand_size(value: str) -> int | None:
+        """Particles of a rope or strand ``R[i0:i1]`` (None if unknown)."""
+        base, lo, hi = parse_strand(value)
+        if base not in rope_n:
+            return None
+        a, b, _ = slice(lo, hi).indices(rope_n[base])
+        return max(b - a, 0)
+
+    def site(owner: Any, value: Any, path: tuple, state: str) -> None:
+        """A rope or cloth site of ``owner`` (a body name) within the body's particles."""
+        if not isinstance(owner, str):
+            return
+        try:
+            k = strand_size(owner)
+        except ValueError:
+            return  # reported as a bad body
+        if k is not None:
+            if isinstance(value, bool) or value in ("start", "end", "all"):
+                return
+            if isinstance(value, int) and not -k <= value < k:
+                out.append(Finding(path, f"state {state!r}: {owner!r} has {k} particles; allowed indices "
+                                         f"[{-k}, {k - 1}], 'start', 'end' or 'all', got {value}"))
+            elif isinstance(value, list) and len(value) == 2 and all(isinstance(v, int) for v in value):
+                lo, hi = (v % (k + 1) if v < 0 else v for v in value)
+                if not 0 <= lo < hi <= k:
+                    out.append(Finding(path, f"state {state!r}: range {value} is not inside {owner!r} "
+                                             f"([i0, i1] with 0 <= i0 < i1 <= {k})"))
+        elif owner in cloth_n and isinstance(value, list) and len(value) == 2 \
+                and all(isinstance(v, int) for v in value):
+            nx, nz = cloth_n[owner]
+            if not (0 <= value[0] < nx and 0 <= value[1] < nz):
+                out.append(Finding(path, f"state {state!r}: cloth {owner!r} is {nx} x {nz} particles; allowed "
+                                         f"grid indices [0, {nx - 1}] x [0, {nz - 1}], got {value}"))
 
     def allowed(kinds: tuple[str, ...]) -> str:
         return "; ".join(f"{k}s: {', '.join(names[k]) or '(none)'}" for k in kinds)
@@ -330,9 +368,18 @@ def check_references(data: Any, states: Mapping[str, Any]) -> list[Finding]:
         ok = base in ropes or ("cloth" in kinds and base == value and base in cloths)
         if not ok:
             out.append(Finding(path, f"state {state!r}: unknown {' or '.join(kinds)} {value!r}; {allowed(kinds)}"))
+        elif base != value and (strand_size(value) or 0) < 2:
+            out.append(Finding(path, f"state {state!r}: strand {value!r} has {strand_size(value)} particles of "
+                                     f"the rope's {rope_n.get(base)}; a strand needs at least 2"))
 
     def walk(value: Any, path: tuple, state: str) -> None:
         if isinstance(value, dict):
+            owner = value.get("body")
+            if isinstance(value.get("sites"), list):
+                for i, item in enumerate(value["sites"]):
+                    site(owner, item, path + ("sites", i), state)
+            if "site" in value:
+                site(owner, value["site"], path + ("site",), state)
             for k, v in value.items():
                 p = path + (k,)
                 if k in _ROPE_KEYS:

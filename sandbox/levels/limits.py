@@ -76,6 +76,34 @@ def allow(env_key: str, value: str) -> None:
     os.environ[env_key] = os.pathsep.join([*old, value])
 
 
+def body_sizes(data: Any) -> tuple[dict[str, int], dict[str, tuple[int, int]]]:
+    """Particles of each rope and (nx, nz) of each cloth that the level's data asks for; bodies whose size
+    cannot be told (bad values, which the schema reports) are left out."""
+    ropes: dict[str, int] = {}
+    cloths: dict[str, tuple[int, int]] = {}
+    scene = data.get("scene") if isinstance(data, dict) else None
+    if not isinstance(scene, dict):
+        return ropes, cloths
+    for rope in scene.get("ropes") or [] if isinstance(scene.get("ropes"), list) else []:
+        try:
+            if rope.get("segments") is not None:
+                n = int(rope["segments"]) + 1
+            else:
+                pts = [[float(a) for a in p] for p in rope["points"]]
+                length = sum(math.dist(a, b) for a, b in zip(pts, pts[1:]))
+                n = max(1, round(length / float(rope["rod_length"]))) + 1
+            ropes[str(rope["name"])] = n
+        except (TypeError, KeyError, ValueError, ZeroDivisionError, OverflowError, AttributeError):
+            continue
+    for cloth in scene.get("cloths") or [] if isinstance(scene.get("cloths"), list) else []:
+        try:
+            nx, nz = (int(v) for v in cloth["resolution"])
+            cloths[str(cloth["name"])] = (nx, nz)
+        except (TypeError, KeyError, ValueError, OverflowError, AttributeError):
+            continue
+    return ropes, cloths
+
+
 def particle_count(data: Any) -> int | None:
     """Rope and cloth particles the level's data asks for (None if it cannot tell)."""
     scene = data.get("scene") if isinstance(data, dict) else None
@@ -83,18 +111,21 @@ def particle_count(data: Any) -> int | None:
         return None
     total = 0
     try:
-        for rope in scene.get("ropes") or []:
+        ropes, cloths = scene.get("ropes") or [], scene.get("cloths") or []
+        if not isinstance(ropes, list) or not isinstance(cloths, list):
+            return None  # the schema reports the bad value
+        for rope in ropes:
             if rope.get("segments") is not None:
                 total += int(rope["segments"]) + 1
             else:
                 pts = [[float(a) for a in p] for p in rope["points"]]
                 length = sum(math.dist(a, b) for a, b in zip(pts, pts[1:]))
                 total += max(1, round(length / float(rope["rod_length"]))) + 1
-        for cloth in scene.get("cloths") or []:
+        for cloth in cloths:
             nx, nz = (int(v) for v in cloth["resolution"])
             if not (2 <= nx <= 1024 and 2 <= nz <= 1024):
                 return None  # out of the schema's range: reported there
             total += nx * nz
-    except (TypeError, KeyError, ValueError, ZeroDivisionError, OverflowError):
+    except (TypeError, KeyError, ValueError, ZeroDivisionError, OverflowError, AttributeError):
         return None  # the schema reports the bad value
     return total

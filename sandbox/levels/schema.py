@@ -31,7 +31,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from sandbox.model.sites import ClothSite, RopeSite
+from sandbox.model.sites import MAX_COORD, ClothSite, RopeSite
 
 
 def fail(kind: str, message: str) -> PydanticCustomError:
@@ -79,9 +79,6 @@ def between(
     return Annotated[base, AfterValidator(check)]
 
 
-MAX_COORD = 1.0e3
-"""Largest |coordinate| (m), length (m), |angle| (degrees) or |gravity component| (m/s^2) a level may
-give: positions are float32, which keeps 0.06 mm at 1 km."""
 MAX_VALUE = 1.0e6
 """Largest other quantity (masses, compliances, times in s, budgets in ms)."""
 
@@ -290,6 +287,8 @@ class RopeSpec(_Model):
             raise fail("motion_without_pins", "a rope's 'motion' moves its pins: give 'pins' as well")
         if self.segments is None and self.rod_length is None:
             raise fail("segments_or_rod_length", "give one of 'segments' or 'rod_length'")
+        if not self.length > 0.0:
+            raise fail("rope_length", "the rope's points are all at one place; allowed: points that span a length")
         n = self.segment_count
         for k, pin in enumerate(self.pins):
             if isinstance(pin, int) and not -(n + 1) <= pin <= n:

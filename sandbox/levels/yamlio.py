@@ -136,7 +136,10 @@ def parse(text: str) -> Document:
     """
     if len(text) > MAX_BYTES:
         raise LimitError(problem=f"the text is {len(text)} characters long; allowed at most {MAX_BYTES}")
-    loader = _Loader(text)
+    try:
+        loader = _Loader(text)  # the reader refuses characters YAML does not allow here
+    except yaml.reader.ReaderError as exc:
+        raise _unprintable(exc, text) from None
     try:
         node = loader.get_single_node()
         doc = Document(data=None)
@@ -145,8 +148,19 @@ def parse(text: str) -> Document:
         return doc
     except RecursionError:
         raise LimitError(problem="the document is nested too deeply") from None
+    except yaml.reader.ReaderError as exc:
+        raise _unprintable(exc, text) from None
     finally:
         loader.dispose()
+
+
+def _unprintable(exc: yaml.reader.ReaderError, text: str) -> yaml.MarkedYAMLError:
+    """A character YAML does not allow (NUL, other control characters), as a syntax error at its place."""
+    head = text[: max(exc.position, 0)]
+    mark = yaml.Mark("", exc.position, head.count("\n"), len(head) - (head.rfind("\n") + 1), None, None)
+    code = exc.character if isinstance(exc.character, int) else ord(exc.character)
+    return yaml.MarkedYAMLError(problem=f"character #x{code:04x} is not allowed in a level file (control "
+                                        "characters other than tab and newline)", problem_mark=mark)
 
 
 def _build(loader: _Loader, node: yaml.Node, path: Path, doc: Document, count: list[int]) -> Any:

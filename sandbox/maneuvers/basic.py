@@ -13,9 +13,12 @@ import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
+from sandbox.model.sites import MAX_COORD
 from sandbox.objects.sites import SITE_NAMES
 
-Vec3 = tuple[float, float, float]
+Coord = Annotated[float, pydantic.Field(ge=-MAX_COORD, le=MAX_COORD, allow_inf_nan=False)]
+Vec3 = tuple[Coord, Coord, Coord]
+"""A point or offset (m), within the coordinates a level may give."""
 Site = Union[str, int, tuple[int, int]]
 
 

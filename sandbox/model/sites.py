@@ -9,6 +9,10 @@ from pydantic_core import PydanticCustomError
 
 from sandbox.model.builder import CORNERS
 
+MAX_COORD = 1.0e3
+"""Largest |coordinate| (m), length (m), |angle| (degrees) or |gravity component| (m/s^2) a level may
+give: positions are float32, which keeps 0.06 mm at 1 km."""
+
 
 def fail(kind: str, message: str) -> PydanticCustomError:
     """A validation error of type ``kind`` with a fully formatted message."""
