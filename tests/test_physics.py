@@ -545,7 +545,9 @@ def test_self_collision_separates_layers_without_throwing_them():
     Read back as velocity, the pushes of the first substep (5 mm each way in
     1/600 s) would part the layers at about 1.3 m/s each: 0.17 m apart after
     three frames. Made inelastic, only what the cloth's own constraints pass on
-    from pushed to unpushed particles is left (about 0.04 m/s).
+    from pushed to unpushed particles is left: 0.085 m/s with one chain sweep,
+    0.105 m/s with the three an inextensible cloth gets (the later sweeps
+    re-solve the rows and columns the pushes bent).
     """
     sim = _sandbox(_stacked_cloths_level(0.005))
     target = sim.world.solver.selfcol.target
@@ -557,7 +559,7 @@ def test_self_collision_separates_layers_without_throwing_them():
     gap = high[:, 1].min() - low[:, 1].max()
     assert 0.99 * target < gap < 1.5 * target
     n = len(low)
-    assert v[n:, 1].mean() - v[:n, 1].mean() < 0.1  # parting speed (1.3 m/s each way if thrown)
+    assert v[n:, 1].mean() - v[:n, 1].mean() < 0.15  # parting speed (1.3 m/s each way if thrown)
     assert np.abs(v).max() < 0.2
     # The scene is its own mirror image across the mid-plane, and so is the motion.
     np.testing.assert_allclose(v[:n, 1].mean(), -v[n:, 1].mean(), atol=1e-4)

@@ -3,7 +3,7 @@
 Usage: python tools/plot_frames.py RUN_A RUN_B ... [--labels a b ...] [--body NAME] [--out frames.png]
 RUN is a `sandbox run` output folder. The strain is the largest of the
 named body (default: of every rope and cloth) in each frame, on a log scale;
-the substeps are what each frame took (adaptive with `sim.max_substeps`).
+the substeps are what each frame took (they adapt to the motion).
 """
 
 import argparse

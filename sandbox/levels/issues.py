@@ -37,7 +37,7 @@ class LevelIssue:
     def __str__(self) -> str:
         tag = "warning: " if self.severity is Severity.WARNING else ""
         if self.line < 1:  # about the file as a whole (missing, not a file): no place in it to point at
-            return f"{self.file}: {tag}{self.message}"
+            return f"{self.file}: {self.path + ': ' if self.path else ''}{tag}{self.message}"
         return f"{self.file}:{self.line}:{self.column}: {self.path or '<root>'}: {tag}{self.message}"
 
 
