@@ -76,6 +76,15 @@ def allow(env_key: str, value: str) -> None:
     os.environ[env_key] = os.pathsep.join([*old, value])
 
 
+def _rope_particles(rope: dict) -> int:
+    """Particles of one rope's data (``segments`` + 1, or its polyline over ``rod_length``); raises on bad values."""
+    if rope.get("segments") is not None:
+        return int(rope["segments"]) + 1
+    pts = [[float(a) for a in p] for p in rope["points"]]
+    length = sum(math.dist(a, b) for a, b in zip(pts, pts[1:]))
+    return max(1, round(length / float(rope["rod_length"]))) + 1
+
+
 def body_sizes(data: Any) -> tuple[dict[str, int], dict[str, tuple[int, int]]]:
     """Particles of each rope and (nx, nz) of each cloth that the level's data asks for; bodies whose size
     cannot be told (bad values, which the schema reports) are left out."""
@@ -84,18 +93,13 @@ def body_sizes(data: Any) -> tuple[dict[str, int], dict[str, tuple[int, int]]]:
     scene = data.get("scene") if isinstance(data, dict) else None
     if not isinstance(scene, dict):
         return ropes, cloths
-    for rope in scene.get("ropes") or [] if isinstance(scene.get("ropes"), list) else []:
+    rope_specs, cloth_specs = scene.get("ropes"), scene.get("cloths")
+    for rope in rope_specs if isinstance(rope_specs, list) else []:
         try:
-            if rope.get("segments") is not None:
-                n = int(rope["segments"]) + 1
-            else:
-                pts = [[float(a) for a in p] for p in rope["points"]]
-                length = sum(math.dist(a, b) for a, b in zip(pts, pts[1:]))
-                n = max(1, round(length / float(rope["rod_length"]))) + 1
-            ropes[str(rope["name"])] = n
+            ropes[str(rope["name"])] = _rope_particles(rope)
         except (TypeError, KeyError, ValueError, ZeroDivisionError, OverflowError, AttributeError):
             continue
-    for cloth in scene.get("cloths") or [] if isinstance(scene.get("cloths"), list) else []:
+    for cloth in cloth_specs if isinstance(cloth_specs, list) else []:
         try:
             nx, nz = (int(v) for v in cloth["resolution"])
             cloths[str(cloth["name"])] = (nx, nz)
@@ -115,12 +119,7 @@ def particle_count(data: Any) -> int | None:
         if not isinstance(ropes, list) or not isinstance(cloths, list):
             return None  # the schema reports the bad value
         for rope in ropes:
-            if rope.get("segments") is not None:
-                total += int(rope["segments"]) + 1
-            else:
-                pts = [[float(a) for a in p] for p in rope["points"]]
-                length = sum(math.dist(a, b) for a, b in zip(pts, pts[1:]))
-                total += max(1, round(length / float(rope["rod_length"]))) + 1
+            total += _rope_particles(rope)
         for cloth in cloths:
             nx, nz = (int(v) for v in cloth["resolution"])
             if not (2 <= nx <= 1024 and 2 <= nz <= 1024):
