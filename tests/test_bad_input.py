@@ -35,6 +35,12 @@ def test_a_bad_level_gives_exit_2_with_its_file_and_line_and_writes_nothing(path
     assert not out.exists()
 
 
+def test_a_short_point_names_the_list_and_the_missing_item(capsys):
+    """A point of two numbers is reported at the point itself, with the item that is missing."""
+    assert main(["check", str(BAD / "point_too_short.yaml")]) == 2
+    assert ":4:12: scene.gravity: item 2 is missing: the list is too short" in capsys.readouterr().err
+
+
 def test_the_corpus_has_one_fault_per_file(capsys):
     """Each bad level has one problem (two for a cloth too wide both ways), so its line says what the class is."""
     for path in CORPUS:

@@ -167,6 +167,8 @@ def convert(exc: pydantic.ValidationError, root: Any, data: Any) -> list[Finding
             allowed = ", ".join(allowed_keys(model)) if model else "?"
             msg = f"unknown key {loc[-1]!r}; allowed keys: {allowed}"
             key = True
+        elif kind == "missing" and isinstance(loc[-1], int):  # a fixed-length list (a point) cut short
+            msg = f"item {loc[-1]} is missing: the list is too short"
         elif kind == "missing":
             msg = f"missing required key {loc[-1]!r}"
             path = path[:-1]
