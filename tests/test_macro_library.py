@@ -83,6 +83,7 @@ def test_a_library_schema_error_points_into_the_library(tmp_path):
     (LEVEL.replace("lib/moves.yaml", "../outside.yaml"), LIBRARY, "level.yaml:6:", "outside the level's folder"),
     (LEVEL.replace("include: [lib/moves.yaml]", "include: 3"), LIBRARY, "level.yaml:6:", "a file name or a list"),
     (LEVEL, LIBRARY.replace("version: 1\n", "version: 1\ninclude: [moves.yaml]\n"), "moves.yaml:2:", "includes itself"),
+    (LEVEL.replace("lib/moves.yaml", "level.yaml"), LIBRARY, "level.yaml:6:", "includes itself"),
     (LEVEL, "- just a list\n", "moves.yaml:1:", "must be a mapping with macros"),
     (LEVEL, LIBRARY.replace("description:", "scene: {}\ndescription:"), "moves.yaml:2:", "unknown key 'scene'"),
     (LEVEL, LIBRARY.replace("version: 1", "version: 2"), "moves.yaml:1:", "version 2 is not supported"),

@@ -67,13 +67,15 @@ class Included:
     issues: list[LevelIssue] = dataclasses.field(default_factory=list)
 
 
-def gather(data: dict, base_dir: pathlib.Path, extra_dirs: Iterable[pathlib.Path] = ()) -> Included:
+def gather(data: dict, base_dir: pathlib.Path, extra_dirs: Iterable[pathlib.Path] = (),
+           level_path: pathlib.Path | None = None) -> Included:
     """Read the libraries ``data["include"]`` names and add their macros to ``data["macros"]`` in place.
 
     Args:
         data: the level's plain data.
         base_dir: the level file's folder.
         extra_dirs: further folders library files may come from.
+        level_path: the level file itself, if it is one (a level that includes itself is an error).
     """
     out = Included()
     roots = [base_dir.resolve(), *[pathlib.Path(d).resolve() for d in extra_dirs]]
@@ -164,7 +166,7 @@ def gather(data: dict, base_dir: pathlib.Path, extra_dirs: Iterable[pathlib.Path
             out.origin[name] = lib
 
     if isinstance(own, dict) or own is None:
-        visit(data.get("include"), base_dir, None, ())
+        visit(data.get("include"), base_dir, None, (level_path.resolve(),) if level_path is not None else ())
     data.pop("include", None)  # resolved: the level holds the macros themselves
     return out
 

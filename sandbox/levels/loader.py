@@ -166,7 +166,8 @@ def check_level_text(
     from sandbox.levels.limits import mesh_dirs as allowed_dirs  # noqa: PLC0415
 
     extra = [*allowed_dirs(), *[pathlib.Path(d) for d in mesh_dirs]]
-    libs = include.gather(doc.data, base, extra)
+    level_file = pathlib.Path(source)
+    libs = include.gather(doc.data, base, extra, level_file if level_file.is_file() else None)
     findings += libs.findings
     overrides = dict(overrides or {})
     for key in [k for k in overrides if k.split(".")[0] == "include"]:
