@@ -207,22 +207,10 @@ class World:
         """
         if body in self.ropes or "[" in body:
             r = self.rope(body)  # a rope or a strand R[i0:i1]; indices count from the strand's start
-            k = r.end - r.start
-            if site == "start":
-                return np.array([r.start])
-            if site == "end":
-                return np.array([r.end - 1])
-            if site == "all":
-                return np.arange(r.start, r.end)
-            if isinstance(site, (list, tuple)) and len(site) == 2:
-                lo, hi = (int(s) % (k + 1) if int(s) < 0 else int(s) for s in site)
-                if not 0 <= lo < hi <= k:
-                    raise ValueError(f"rope {body!r}: range {list(site)} not inside [0, {k}]")
-                return np.arange(r.start + lo, r.start + hi)
-            i = int(site)
-            if not -k <= i < k:
-                raise ValueError(f"rope {body!r}: index {i} outside [-{k}, {k - 1}]")
-            return np.array([r.start + i % k])
+            from sandbox.model.strands import rope_site_span
+
+            lo, hi = rope_site_span(body, r.end - r.start, site)
+            return np.arange(r.start + lo, r.start + hi)
         if body in self.cloths:
             c = self.cloths[body]
             if isinstance(site, str) and site.startswith("line"):

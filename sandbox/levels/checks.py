@@ -313,7 +313,7 @@ def check_references(data: Any, states: Mapping[str, Any]) -> list[Finding]:
     cloth; ``knot`` a list of those; ``object`` (inside a target) an object.
     """
     from sandbox.levels.limits import body_sizes  # noqa: PLC0415
-    from sandbox.model.strands import parse_strand
+    from sandbox.model.strands import parse_strand, rope_site_span
 
     names = scene_names(data)
     ropes, cloths, objects = set(names["rope"]), set(names["cloth"]), set(names["object"])
@@ -337,16 +337,14 @@ def check_references(data: Any, states: Mapping[str, Any]) -> list[Finding]:
         except ValueError:
             return  # reported as a bad body
         if k is not None:
-            if isinstance(value, bool) or value in ("start", "end", "all"):
-                return
-            if isinstance(value, int) and not -k <= value < k:
-                out.append(Finding(path, f"state {state!r}: {owner!r} has {k} particles; allowed indices "
-                                         f"[{-k}, {k - 1}], 'start', 'end' or 'all', got {value}"))
-            elif isinstance(value, list) and len(value) == 2 and all(isinstance(v, int) for v in value):
-                lo, hi = (v % (k + 1) if v < 0 else v for v in value)
-                if not 0 <= lo < hi <= k:
-                    out.append(Finding(path, f"state {state!r}: range {value} is not inside {owner!r} "
-                                             f"([i0, i1] with 0 <= i0 < i1 <= {k})"))
+            rope_site = isinstance(value, int) or (isinstance(value, list) and len(value) == 2
+                                                   and all(isinstance(v, int) for v in value))
+            if rope_site and not isinstance(value, bool):
+                try:
+                    rope_site_span(owner, k, value)  # the rule the world resolves sites by
+                except ValueError as exc:
+                    out.append(Finding(path, f"state {state!r}: {exc}; allowed: an index in [{-k}, {k - 1}], "
+                                             f"[i0, i1] with 0 <= i0 < i1 <= {k}, 'start', 'end' or 'all'"))
         elif owner in cloth_n and isinstance(value, list) and len(value) == 2 \
                 and all(isinstance(v, int) for v in value):
             nx, nz = cloth_n[owner]

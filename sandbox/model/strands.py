@@ -46,3 +46,27 @@ def strand_range(rope, ref: str):
         raise ValueError(f"strand {ref!r} has {max(b - a, 0)} particles; rope {rope.name!r} has {k} "
                          "(a strand needs at least 2)")
     return dataclasses.replace(rope, name=ref, start=rope.start + a, end=rope.start + b)
+
+
+def rope_site_span(name: str, k: int, site) -> tuple[int, int]:
+    """The particles ``[lo, hi)`` that a site of a rope or strand of ``k`` particles names: ``start``, ``end``,
+    ``all``, an index (negative counts from the end) or ``[i0, i1]`` (end exclusive).
+
+    Raises:
+        ValueError: an index or range outside the rope, naming what is allowed.
+    """
+    if site == "start":
+        return 0, 1
+    if site == "end":
+        return k - 1, k
+    if site == "all":
+        return 0, k
+    if isinstance(site, (list, tuple)) and len(site) == 2:
+        lo, hi = (int(s) % (k + 1) if int(s) < 0 else int(s) for s in site)
+        if not 0 <= lo < hi <= k:
+            raise ValueError(f"rope {name!r}: range {list(site)} not inside [0, {k}]")
+        return lo, hi
+    i = int(site)
+    if not -k <= i < k:
+        raise ValueError(f"rope {name!r}: index {i} outside [-{k}, {k - 1}]")
+    return i % k, i % k + 1
