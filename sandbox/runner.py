@@ -192,6 +192,7 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         summary["arch"] = world.arch
         from sandbox import runtime  # Taichi is imported once the level and --out are known to be good
 
+        summary["backend_reason"] = runtime.reason()  # auto: what the drivers reported (sandbox/backends.py)
         summary["fast_compile"] = runtime.fast_compile()  # frame times depend on it (docs/how-it-works.md, "Compile time")
         summary["particles"] = world.model.n
         summary["constraints"] = world.model.m

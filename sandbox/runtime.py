@@ -14,9 +14,11 @@ import weakref
 
 import taichi as ti
 
+from sandbox import backends
+
 ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
 
-_state: dict = {"arch": None, "requested": None, "fast_compile": False, "debug": False}
+_state: dict = {"arch": None, "requested": None, "fast_compile": False, "debug": False, "reason": None}
 
 _open: "weakref.WeakSet" = weakref.WeakSet()
 """The worlds built and not yet closed (``release`` refuses while any is open)."""
@@ -135,16 +137,16 @@ class RuntimeConfigError(RuntimeError):
     """A second, different Taichi initialisation was requested."""
 
 
-def _resolve(arch: str) -> list:
-    if arch == "cpu":
-        return [ti.cpu]
-    if arch == "cuda":
-        return [ti.cuda]
-    if arch == "vulkan":
-        return [ti.vulkan]
-    if arch == "metal":
-        return [ti.metal]
-    return [ti.cuda, ti.vulkan, ti.metal, ti.cpu]
+_TI_ARCH = {"cpu": ti.cpu, "cuda": ti.cuda, "vulkan": ti.vulkan, "metal": ti.metal}
+
+
+def _resolve(arch: str) -> tuple[tuple[str, ...], str]:
+    """The backends to try, best first, and why (``auto``: ``sandbox.backends.choose_auto``)."""
+    if arch != "auto":
+        return (arch,), f"requested {arch}"
+    choice = backends.choose_auto()
+    backends.point_taichi_at(choice)
+    return choice.candidates, choice.reason
 
 
 KERNEL_CACHE_BYTES = 2**30
@@ -157,8 +159,10 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
     """Initialise Taichi once for this process.
 
     Args:
-        arch: one of ``auto|cpu|cuda|vulkan|metal``. ``auto`` picks the first
-            GPU backend available and falls back to the CPU.
+        arch: one of ``auto|cpu|cuda|vulkan|metal``. ``auto`` picks a CUDA
+            device, else a hardware Vulkan GPU, else Metal on macOS, else the
+            CPU; never a software Vulkan device (``sandbox/backends.py``).
+            ``reason()`` says what was chosen and why.
         debug: enable Taichi's bound checks (slow).
         fast_compile: skip Taichi's advanced IR optimisations: a world's
             kernels compile about 3x faster and its frames run about 1.1x
@@ -196,14 +200,14 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
             f"Taichi already runs on {running!r} (requested {_state['requested']!r}); "
             f"a second init with arch={arch!r} is not allowed in the same process"
         )
-    candidates = _resolve(arch)
+    candidates, why = _resolve(arch)
     kwargs = {}
     if "SANDBOX_THREADS" in os.environ:
         kwargs["cpu_max_num_threads"] = int(os.environ["SANDBOX_THREADS"])
     if fast_compile:
         kwargs["advanced_optimization"] = False
     ti.init(
-        arch=candidates if arch == "auto" else candidates[0],
+        arch=[_TI_ARCH[a] for a in candidates] if len(candidates) > 1 else _TI_ARCH[candidates[0]],
         debug=debug,
         random_seed=0,
         default_fp=ti.f32,
@@ -215,8 +219,11 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
     running = str(ti.lang.impl.current_cfg().arch).split(".")[-1]
     if arch not in ("auto", "cpu") and not _matches(arch, running):
         raise RuntimeConfigError(f"arch {arch!r} was requested but Taichi started on {running!r}")
+    if not _matches(candidates[0], running):
+        why += f"; {candidates[0]} did not start, running on the CPU"  # Taichi fell back
     _state["arch"] = running
     _state["requested"] = arch
+    _state["reason"] = why
     _state["fast_compile"] = bool(fast_compile)
     _state["debug"] = bool(debug)
     return running
@@ -241,6 +248,11 @@ def _matches(arch: str, running: str) -> bool:
 def ensure_init() -> str:
     """Initialise on the CPU unless Taichi already runs; returns the backend."""
     return _state["arch"] or init("cpu")
+
+
+def reason() -> str | None:
+    """Why the running backend was chosen (``auto``: what the drivers reported), or None before ``init``."""
+    return _state["reason"] if _state["arch"] is not None else None
 
 
 def current_arch() -> str | None:

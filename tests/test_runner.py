@@ -305,6 +305,7 @@ def test_in_process_runs_give_back_their_field_trees(tmp_path):
     code, s = run_level(level, RunOptions(out=tmp_path / "b", frames=3, progress=False))
     assert s["status"] == "completed" and (tmp_path / "b" / "state.npz").exists()
     assert s["fast_compile"] is runtime.fast_compile()  # frame times depend on it
+    assert s["backend_reason"] == runtime.reason() == "requested cpu"
     assert ti.lang.impl.get_runtime().prog.get_snode_tree_size() == trees
 
 

@@ -61,6 +61,9 @@ def main(level_path: str, *, arch: str = "auto") -> int:
         return Sandbox.from_level(level_path, arch=arch)
 
     sim = build()
+    from sandbox import runtime
+
+    print(f"physics on {runtime.current_arch()} ({runtime.reason()})", flush=True)
     try:
         window = ti.ui.Window(f"sandbox play {os.path.basename(level_path)}", (1280, 720), vsync=True)
     except Exception as exc:  # GGUI raises RuntimeError without Vulkan, others on odd drivers
