@@ -155,6 +155,14 @@ holds about one level's kernels in both compile modes: a sweep over many levels 
 compile most runs afresh (tens of seconds each)."""
 
 
+CPU_CFG_OPTIMIZATION = False
+"""Taichi's control-flow-graph optimisation (store-to-load forwarding, dead stores) on the CPU. A
+substep is one fused kernel, and that pass grows faster than the kernel's length: without it
+rope_hang's first frame compiles in 14 s instead of 38 s, drape_box's in 17 s instead of 37 s,
+and frames take the same time within noise (docs/benchmarks.md, "Start"). It changes float
+rounding, as fast compile does. GPU backends keep it (not measured there)."""
+
+
 def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None = None) -> str:
     """Initialise Taichi once for this process.
 
@@ -206,6 +214,8 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
         kwargs["cpu_max_num_threads"] = int(os.environ["SANDBOX_THREADS"])
     if fast_compile:
         kwargs["advanced_optimization"] = False
+    if candidates[0] == "cpu":
+        kwargs["cfg_optimization"] = CPU_CFG_OPTIMIZATION
     ti.init(
         arch=[_TI_ARCH[a] for a in candidates] if len(candidates) > 1 else _TI_ARCH[candidates[0]],
         debug=debug,
