@@ -157,8 +157,8 @@ def test_chain_kernel_matches_the_numpy_reference(with_contacts, overreach, bloc
         side = np.cross(along, [0.0, 0.0, 1.0])
         tilt = np.radians(0.1)
         normal[a0 + 1] = np.cos(tilt) * along + np.sin(tilt) * side / np.linalg.norm(side)
-    solver.c_hit.from_numpy(touching.astype(np.float32))
-    solver.c_normal.from_numpy(normal.astype(np.float32))
+    solver.contacts.hit.from_numpy(touching.astype(np.float32))
+    solver.contacts.normal.from_numpy(normal.astype(np.float32))
     a = chains.link_a.to_numpy()
     rest = chains.rest.to_numpy().astype(np.float64)
     lo, hi = chains.lo.to_numpy(), chains.hi.to_numpy()
@@ -199,7 +199,7 @@ def test_resweep_solves_only_the_chains_still_off():
     driven = w.control.is_driven(np.arange(len(x))).astype(bool)
     inv_mass = np.where(driven, 0.0, solver.model.inv_mass.to_numpy()).astype(np.float64)
     solver.w.from_numpy(inv_mass.astype(np.float32))
-    solver.c_hit.from_numpy(np.zeros(len(x), np.float32))
+    solver.contacts.hit.from_numpy(np.zeros(len(x), np.float32))
     a = chains.link_a.to_numpy()
     rest = chains.rest.to_numpy().astype(np.float64)
     lo, hi = chains.lo.to_numpy(), chains.hi.to_numpy()
@@ -243,7 +243,7 @@ def test_resweep_skips_cloth_chains_that_are_only_compressed():
     chains = solver.inext
     x = w.positions().astype(np.float32)
     solver.w.from_numpy(solver.model.inv_mass.to_numpy())
-    solver.c_hit.from_numpy(np.zeros(len(x), np.float32))
+    solver.contacts.hit.from_numpy(np.zeros(len(x), np.float32))
     nx = 6
     folded = x.copy()
     folded[np.arange(len(x)) % nx >= 2, 0] -= 0.03  # columns 2.. slid 3 cm towards column 1: a fold

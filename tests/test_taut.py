@@ -33,11 +33,11 @@ def _taut_fields(w):
 
     @ti.kernel
     def fill():
-        solver.inext.taut_f(solver.ropecol.taut, solver.ropecol.taut_n, solver.ropecol.room)
+        solver.inext.taut_f(solver.contacts.taut, solver.contacts.taut_n, solver.contacts.room)
 
     solver_masses(w)
     fill()
-    return solver.ropecol.taut.to_numpy(), solver.ropecol.taut_n.to_numpy(), solver.ropecol.room.to_numpy()
+    return solver.contacts.taut.to_numpy(), solver.contacts.taut_n.to_numpy(), solver.contacts.room.to_numpy()
 
 
 def _reference(x, x0, w, ropes):

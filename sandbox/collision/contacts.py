@@ -78,3 +78,33 @@ def plane_push(x, radius, height):
     """
     pen = ti.max(height + radius - x[1], 0.0)
     return x + ti.math.vec3(0.0, pen, 0.0), pen
+
+
+@ti.data_oriented
+class Contacts:
+    """What a substep's contact passes found, per particle, for the passes after them.
+
+    The ground, object and rope contact passes write it; the chain step, the
+    joint cloth step and the velocity pass read it. One structure, allocated
+    by the solver only where something can touch a particle, and passed to
+    every pass that needs it.
+
+    Fields (n particles):
+        hit: (n,) f32, > 0 where the particle touched something this substep.
+        normal: (n,) vec3 f32, the direction it was pushed (the chains leave motion along it to the contacts).
+        dv: (n,) f32, m/s, friction budget of its ground and object contacts (``CONTACT_FLAG`` at least when touched).
+        vel: (n,) vec3 f32, m/s, velocity of the surface it touched.
+        taut, taut_n, room: (n,) f32, vec3, f32, only with ``taut``: how much of a particle's inverse mass a rope
+            contact takes away along ``taut_n``, and how far along it a pass may move it (a held stretch of rope
+            drawn taut; ``rope_chain.ChainProjection.taut_f``).
+    """
+
+    def __init__(self, n: int, *, taut: bool = False) -> None:
+        self.hit = ti.field(ti.f32, shape=n)
+        self.normal = ti.Vector.field(3, ti.f32, shape=n)
+        self.dv = ti.field(ti.f32, shape=n)
+        self.vel = ti.Vector.field(3, ti.f32, shape=n)
+        self.has_taut = bool(taut)
+        self.taut = ti.field(ti.f32, shape=n) if taut else None
+        self.taut_n = ti.Vector.field(3, ti.f32, shape=n) if taut else None
+        self.room = ti.field(ti.f32, shape=n) if taut else None

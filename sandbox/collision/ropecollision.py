@@ -71,8 +71,7 @@ class RopeCollision:
             of its shortest rod; 0 off the ropes).
     """
 
-    def __init__(self, model, state, w, hit=None, normal=None, mode: str = "average", taut=None,
-                 inelastic: bool = False) -> None:
+    def __init__(self, model, state, w, contacts=None, mode: str = "average", inelastic: bool = False) -> None:
         if mode not in ("average", "balanced", "split"):
             raise ValueError(f"rope contact mode {mode!r}: use average, balanced or split")
         self.model = model
@@ -82,17 +81,17 @@ class RopeCollision:
         self.counted = mode != "average"  # a counting gather first; particles add what they gather
         self.st = state
         self.w = w
-        # Optional (n,) f32, (n,) vec3 and (n,) f32 fields: how much of each
-        # particle's inverse mass is taken away along a direction, and how far
-        # along it a pass may move the particle (a held stretch of rope drawn
-        # taut, see rope_chain.ChainProjection.taut_f).
-        self.has_taut = taut is not None
-        self.taut, self.taut_n, self.room = taut if taut is not None else (None, None, None)
-        # Optional (n,) contact flag and normal fields: a pushed particle records
-        # its push direction there for the chain solve (see rope_chain).
-        self.record = hit is not None
-        self.hit = hit
-        self.normal = normal
+        # ``contacts`` (a ``collision.contacts.Contacts``, optional): a pushed
+        # particle records its push direction there for the chain solve (see
+        # rope_chain); with its taut fields, how much of each particle's
+        # inverse mass is taken away along a direction, and how far along it
+        # a pass may move the particle (a held stretch of rope drawn taut,
+        # see rope_chain.ChainProjection.taut_f).
+        self.record = contacts is not None
+        self.hit = contacts.hit if contacts is not None else None
+        self.normal = contacts.normal if contacts is not None else None
+        self.has_taut = contacts is not None and contacts.has_taut
+        self.taut, self.taut_n, self.room = (contacts.taut, contacts.taut_n, contacts.room) if self.has_taut else (None,) * 3
         d = model.data
         s = len(d.segments)
         self.s = s

@@ -55,7 +55,7 @@ class JointClothProjection(ChainProjection):
     """One joint Newton step on every row and column of the inextensible cloths.
 
     Args:
-        model, state, w, contact, normal: as for ``ChainProjection``.
+        model, state, w, contacts: as for ``ChainProjection``.
         groups: ``cloth_chain_groups(model.data)``.
         peeled: the chain step's peel flags (n,) i32, shared, so that a
             particle the chain step lets leave its surface is free here too.
@@ -75,9 +75,8 @@ class JointClothProjection(ChainProjection):
             inner products; (4,) f32 finished ones.
     """
 
-    def __init__(self, model, state, w, groups, contact=None, normal=None, peeled=None,
-                 iterations: int = 8) -> None:
-        super().__init__(model, state, w, groups, contact, normal)
+    def __init__(self, model, state, w, groups, contacts=None, peeled=None, iterations: int = 8) -> None:
+        super().__init__(model, state, w, groups, contacts)
         if peeled is not None:
             self.peeled = peeled
         self.iterations = int(iterations)

@@ -75,6 +75,11 @@ def build_chains(data) -> list[list[np.ndarray]]:
     return [g for g in (rows + cloth_rows, cols) if g]
 
 
+def has_rope_chains(data) -> bool:
+    """Whether a scene has an inextensible rope of at least two rods (a chain the chain step solves)."""
+    return any(r.stretch_compliance == 0.0 and r.end - r.start >= 2 for r in data.ropes)
+
+
 @ti.data_oriented
 class ChainProjection:
     """Tridiagonal projection of every inextensible chain.
@@ -89,13 +94,13 @@ class ChainProjection:
         cp, dp: (L,) f32, Thomas algorithm scratch.
     """
 
-    def __init__(self, model, state, w, groups: list[list[np.ndarray]], contact=None, normal=None) -> None:
+    def __init__(self, model, state, w, groups: list[list[np.ndarray]], contacts=None) -> None:
         self.model = model
         self.st = state
         self.w = w
-        self.has_contacts = contact is not None
-        self.contact = contact  # (n,) f32 > 0 where the particle touched a surface this substep
-        self.normal = normal  # (n,) vec3 contact normals
+        self.has_contacts = contacts is not None  # a ``collision.contacts.Contacts``, or None where nothing touches
+        self.contact = contacts.hit if contacts is not None else None  # > 0 where the particle touched a surface
+        self.normal = contacts.normal if contacts is not None else None  # the direction it was pushed
         x0 = model.data.x0
         a, b, lo, hi = [], [], [], []
         self.group_ranges = []
@@ -129,7 +134,7 @@ class ChainProjection:
         self.cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         # Rope chains get the guards against near-singular steps (_unpin_blocked,
         # _step_scale); a scene without ropes compiles none of them.
-        self.has_ropes = any(r.stretch_compliance == 0.0 and r.end - r.start >= 2 for r in model.data.ropes)
+        self.has_ropes = has_rope_chains(model.data)
         self.res = ti.field(ti.f32, shape=n_links)  # -(length - rest) at the linearisation
         self.cp = ti.field(ti.f32, shape=n_links)
         self.dp = ti.field(ti.f32, shape=n_links)

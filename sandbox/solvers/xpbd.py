@@ -49,13 +49,13 @@ import numpy as np
 import taichi as ti
 
 from sandbox import runtime
-from sandbox.collision.contacts import CONTACT_FLAG, friction_velocity, inelastic_velocity, plane_push
+from sandbox.collision.contacts import CONTACT_FLAG, Contacts, friction_velocity, inelastic_velocity, plane_push
 from sandbox.collision.ropecollision import RopeCollision
 from sandbox.collision.selfcollision import ClothSelfCollision
 from sandbox.constraints.distance import xpbd_distance
 from sandbox.model.model import Control, Model, State
 from sandbox.solvers.cloth_joint import JointClothProjection, cloth_chain_groups
-from sandbox.solvers.rope_chain import ChainProjection, build_chains
+from sandbox.solvers.rope_chain import ChainProjection, build_chains, has_rope_chains
 
 PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP, \
     JOINT, SETTLE = range(12)
@@ -152,9 +152,10 @@ class XPBDSolver:
         depth: (n,) f32, m, penetration into ground/objects (metrics).
         strain: (bodies,) f32, max |l - r| / r of each rope's rods; max
             (l - r) / r (stretch) of each cloth's structural edges.
-        c_normal, c_dv, c_vel, c_hit: (n,) contact normal, friction budget
-            (m/s), surface velocity (m/s) and contact flag of this substep's
-            contacts, used by the chains and the velocity pass.
+        contacts: this substep's contacts (``collision.contacts.Contacts``:
+            flag, normal, friction budget, surface velocity, taut rope), made
+            by the contact passes and read by the chains, the joint step and
+            the velocity pass; None where nothing can touch a particle.
     """
 
     def __init__(self, model: Model, state: State, control: Control, config: SolverConfig = SolverConfig(),
@@ -188,27 +189,21 @@ class XPBDSolver:
         # particle (ground, objects, other rope segments): the chain solve
         # then leaves the motion along them to the contacts.
         self.has_contact_normals = self.has_ground or self.has_objects or model.s >= 3
-        if self.has_contact_normals:
-            self.c_normal = ti.Vector.field(3, ti.f32, shape=model.n)
-            self.c_dv = ti.field(ti.f32, shape=model.n)
-            self.c_vel = ti.Vector.field(3, ti.f32, shape=model.n)
-            self.c_hit = ti.field(ti.f32, shape=model.n)
-        contact = (self.c_hit, self.c_normal) if self.has_contact_normals else (None, None)
+        groups = build_chains(model.data)
+        # Rope contacts do not push a held stretch of rope out past taut
+        # (ChainProjection.taut_f), refreshed before each contact pass.
+        self.has_taut = model.s >= 3 and has_rope_chains(model.data)
+        self.contacts = Contacts(model.n, taut=self.has_taut) if self.has_contact_normals else None
+        contacts = self.contacts
         cloth_start = min((c.start for c in model.data.cloths), default=model.n)
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
         self.has_selfcol = self.selfcol is not None
-        groups = build_chains(model.data)
-        self.inext = ChainProjection(model, state, self.w, groups, *contact) if groups else None
-        # Rope contacts do not push a held stretch of rope out past taut
-        # (ChainProjection.taut_f), refreshed before each contact pass.
-        self.has_taut = model.s >= 3 and self.inext is not None and self.inext.has_ropes
-        taut = (ti.field(ti.f32, shape=model.n), ti.Vector.field(3, ti.f32, shape=model.n),
-                ti.field(ti.f32, shape=model.n)) if self.has_taut else None
-        self.ropecol = RopeCollision(model, state, self.w, *contact, mode=rope_contacts, taut=taut,
+        self.inext = ChainProjection(model, state, self.w, groups, contacts) if groups else None
+        self.ropecol = RopeCollision(model, state, self.w, contacts, mode=rope_contacts,
                                      inelastic=rope_inelastic) if model.s >= 3 else None
         self.rope_inelastic = self.ropecol is not None and self.ropecol.inelastic
         cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
-        self.joint = JointClothProjection(model, state, self.w, cloth_groups, *contact, peeled=self.inext.peeled,
+        self.joint = JointClothProjection(model, state, self.w, cloth_groups, contacts, peeled=self.inext.peeled,
                                           iterations=int(cloth_joint)) if cloth_groups else None
         self.prestabilize = bool(prestabilize) and self.ropecol is not None and self.inext is not None
         # Step 0: what overlap and rod error the last substep left is removed
@@ -337,20 +332,20 @@ class XPBDSolver:
                 if ti.static(self.has_ground):
                     x, pen = plane_push(x, r, gh)
                     if pen > 0.0:
-                        self.c_normal[i] = ti.math.vec3(0.0, 1.0, 0.0)
-                        self.c_hit[i] = 1.0
-                        self.c_dv[i] = ti.max(self.c_dv[i], 0.5 * (mu_p + gmu) * pen / dt, CONTACT_FLAG)
-                        self.c_vel[i] = ti.math.vec3(0.0)
+                        self.contacts.normal[i] = ti.math.vec3(0.0, 1.0, 0.0)
+                        self.contacts.hit[i] = 1.0
+                        self.contacts.dv[i] = ti.max(self.contacts.dv[i], 0.5 * (mu_p + gmu) * pen / dt, CONTACT_FLAG)
+                        self.contacts.vel[i] = ti.math.vec3(0.0)
                 if ti.static(self.has_objects):
                     d, n, k = self.objects.query_within(x, r)
                     pen = r - d
                     if pen > 0.0:
                         x += pen * n
                         mu = 0.5 * (mu_p + self.objects.friction(k))
-                        self.c_normal[i] = n
-                        self.c_hit[i] = 1.0
-                        self.c_dv[i] = ti.max(self.c_dv[i], mu * pen / dt, CONTACT_FLAG)
-                        self.c_vel[i] = self.objects.velocity_at(k, x)
+                        self.contacts.normal[i] = n
+                        self.contacts.hit[i] = 1.0
+                        self.contacts.dv[i] = ti.max(self.contacts.dv[i], mu * pen / dt, CONTACT_FLAG)
+                        self.contacts.vel[i] = self.objects.velocity_at(k, x)
                 st.x[i] = x
 
     @ti.func
@@ -359,12 +354,12 @@ class XPBDSolver:
         for i in st.x:
             v = (st.x[i] - st.x_prev[i]) * inv_dt
             if ti.static(self.has_ground or self.has_objects):
-                if self.c_dv[i] > 0.0:
-                    v = inelastic_velocity(v, self.c_normal[i], self.c_vel[i])
-                    v = friction_velocity(v, self.c_normal[i], self.c_dv[i], self.c_vel[i])
-                    self.c_dv[i] = 0.0
+                if self.contacts.dv[i] > 0.0:
+                    v = inelastic_velocity(v, self.contacts.normal[i], self.contacts.vel[i])
+                    v = friction_velocity(v, self.contacts.normal[i], self.contacts.dv[i], self.contacts.vel[i])
+                    self.contacts.dv[i] = 0.0
             if ti.static(self.has_contact_normals):
-                self.c_hit[i] = 0.0
+                self.contacts.hit[i] = 0.0
             if ti.static(self.has_selfcol):
                 v = self.selfcol.settle(i, v, inv_dt)
             if ti.static(self.rope_inelastic):
@@ -385,7 +380,7 @@ class XPBDSolver:
             self._constraints(1.0 / (dt * dt))
         if ti.static(sid == ROPE_COLLIDE):
             if ti.static(self.has_taut):
-                self.inext.taut_f(self.ropecol.taut, self.ropecol.taut_n, self.ropecol.room)
+                self.inext.taut_f(self.contacts.taut, self.contacts.taut_n, self.contacts.room)
             self.ropecol.solve_f()
         if ti.static(sid == SELF_COLLIDE):
             self.selfcol.solve_f()
