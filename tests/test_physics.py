@@ -563,3 +563,30 @@ def test_self_collision_separates_layers_without_throwing_them():
     assert np.abs(v).max() < 0.2
     # The scene is its own mirror image across the mid-plane, and so is the motion.
     np.testing.assert_allclose(v[:n, 1].mean(), -v[n:, 1].mean(), atol=1e-4)
+
+
+def test_segments_cut_a_substep_around_the_passes_some_substeps_skip():
+    """``_segments`` (closed form): runs of passes of one optional group become launches of their own, the
+    passes between them stay fused, and nothing is reordered."""
+    from sandbox.solvers import xpbd as x
+
+    stages = (x.PREDICT, x.CONSTRAINTS, x.SELF_LISTS, x.SELF_COLLIDE, x.CONTACTS, x.JOINT, x.VELOCITIES)
+    got = x._segments(stages, {x.SELF_LISTS: 0, x.SELF_COLLIDE: 0, x.JOINT: 1})
+    assert got == (((x.PREDICT, x.CONSTRAINTS), None), ((x.SELF_LISTS, x.SELF_COLLIDE), 0),
+                   ((x.CONTACTS,), None), ((x.JOINT,), 1), ((x.VELOCITIES,), None))
+    assert sum((s for s, _ in got), ()) == stages
+    assert x._segments(stages, {}) == ((stages, None),)
+
+
+@pytest.mark.parametrize("every", [1, 3])
+def test_a_substep_launches_exactly_its_variants_passes(every):
+    """Whatever a substep skips (self-collision on all but every k-th and the last), the segments it launches are,
+    in order, the passes of its variant; with nothing skipped the substep stays one fused kernel."""
+    with Sandbox.from_level(LEVELS / "drape_box.yaml", arch="cpu",
+                            overrides={"sim.self_collision_every": every, "sim.cloth_joint_every": every}) as sim:
+        s = sim.world.solver
+        assert (len(s.segments) == 1) == (every == 1)
+        for k in range(5):
+            skips = s._skips(k, 5)
+            launched = sum((p for p, g in s.segments if g is None or not skips[g]), ())
+            assert launched == s.variants[skips][0]

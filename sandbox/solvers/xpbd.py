@@ -77,6 +77,24 @@ STAGE_NAMES = {
 }
 
 
+def _segments(stages, optional: dict) -> tuple:
+    """``stages`` cut into launches where a pass some substeps skip begins or ends.
+
+    ``optional`` maps such a pass to its group (0: self-collision, 1: the
+    joint step). Returns ((passes, group or None), ...): each run of passes
+    of one group is a launch of its own, which a substep that skips the group
+    leaves out; the runs between them stay fused. Equal runs are one kernel.
+    """
+    out: list = []
+    for sid in stages:
+        group = optional.get(sid)
+        if out and out[-1][1] == group:
+            out[-1] = (out[-1][0] + (sid,), group)
+        else:
+            out.append(((sid,), group))
+    return tuple(out)
+
+
 def _without(stages, skip_self: bool, skip_joint: bool) -> tuple:
     """``stages`` less self-collision and/or the joint cloth step."""
     drop = ((SELF_LISTS, SELF_COLLIDE) if skip_self else ()) + ((JOINT,) if skip_joint else ())
@@ -270,6 +288,18 @@ class XPBDSolver:
         }
         self.self_collision_every = int(self_collision_every)
         self.cloth_joint_every = int(cloth_joint_every)
+        # Fused, a substep that skips self-collision or the joint step would
+        # be a kernel of its own, as long as the whole substep: two or three
+        # copies of it to compile (and to load from the kernel cache). Cut
+        # around the passes that some substeps skip instead, each part one
+        # kernel: a launch or two more per substep, against frames of tens of
+        # milliseconds where cloth is simulated.
+        optional = {}
+        if self.selfcol is not None and self.self_collision_every > 1:
+            optional.update({SELF_LISTS: 0, SELF_COLLIDE: 0})
+        if self.joint is not None and self.cloth_joint_every > 1:
+            optional[JOINT] = 1
+        self.segments = _segments(self.stages, optional) if optional else ((self.stages, None),)
         self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------ passes
@@ -460,12 +490,15 @@ class XPBDSolver:
     def substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
         """One substep (k of ``substeps``); ``frac`` is how far through the frame it ends."""
         gh, gmu = self._ground()
-        whole, chunk, rest = self.variants[self._skips(k, substeps)]
+        skips = self._skips(k, substeps)
         if self.stages_zero:
             self._run_k(self.stages_zero, dt, frac, gh, gmu)
         if self.fused:
-            self._run_k(whole, dt, frac, gh, gmu)
+            for stages, group in self.segments:
+                if group is None or not skips[group]:
+                    self._run_k(stages, dt, frac, gh, gmu)
             return
+        whole, chunk, rest = self.variants[skips]
         self._run_k(self.stages_pre, dt, frac, gh, gmu)
         for _ in range(self.chunks[0]):
             self._run_k(chunk, dt, frac, gh, gmu)
