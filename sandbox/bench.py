@@ -112,6 +112,7 @@ def bench_level(path: str, frames: int = 60, overrides: dict | None = None, prof
         "stage_ms": {k: float(np.median(v)) for k, v in stages.items()},
         "final_strain": {n: float(s) for n, s in zip(list(w.ropes) + list(w.cloths), m["strain"])},
         "run_max_strain": dict(w.run_max["strain"]),
+        "run_max_penetration": dict(w.run_max["penetration"]),  # m, deepest into the ground or an object
         "final_max_speed": float(row["max_speed"]),  # the last frame's metrics row
         "substeps": {"mean": w.mean_substeps, "most": max(w.substep_frames)},
         "budget": w.level.budget.model_dump(),
