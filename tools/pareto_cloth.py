@@ -62,21 +62,30 @@ def plot(rows: list[dict], path: pathlib.Path, title: str) -> None:
     for ax, key, label in ((axes[0], "stretch", "largest stretch over the run (%)"),
                            (axes[1], "depth_mm", "deepest into the box or ground over the run (mm)")):
         xs = [r["ms"] for r in rows]
-        ys = [max(r[key], 1e-3) for r in rows]
+        ys = [r[key] for r in rows]
         ax.scatter(xs, ys, color="tab:blue", zorder=3)
+        ax.set_xlabel("median ms per frame")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3, which="both")
+        if max(ys) <= 0.0:  # a log axis and labels would only pile up on zero
+            ax.text(0.5, 0.7, "0 for every setting", transform=ax.transAxes, ha="center")
+            continue
         for r, x, y in zip(rows, xs, ys):
             ax.annotate(r["label"], (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
         idx = front(list(zip(xs, ys)))
         ax.plot([xs[i] for i in idx], [ys[i] for i in idx], color="tab:orange", lw=1, zorder=2, label="front")
-        ax.set_yscale("log")
-        ax.set_xlabel("median ms per frame")
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3, which="both")
+        if min(ys) > 0.0:
+            ax.set_yscale("log")
         ax.legend(fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
+
+
+def _title(res: dict) -> str:
+    return (f"{res['level']}: run time against error ({res['frames']} frames, calibration "
+            f"{res['calibration_ms']:.1f} ms, {res['machine']['processor']})")
 
 
 def main(argv=None) -> int:
@@ -86,7 +95,12 @@ def main(argv=None) -> int:
     ap.add_argument("--arch", default="cpu")
     ap.add_argument("--out", default="runs/pareto_cloth.json")
     ap.add_argument("--plot", help="write the plot to this PNG")
+    ap.add_argument("--replot", metavar="JSON", help="only draw --plot from an earlier run's --out")
     a = ap.parse_args(argv)
+    if a.replot:
+        res = json.loads(pathlib.Path(a.replot).read_text())
+        plot(res["rows"], pathlib.Path(a.plot or "pareto.png"), _title(res))
+        return 0
     runtime.init(a.arch)
     from sandbox.levels import load_level
 
@@ -113,8 +127,7 @@ def main(argv=None) -> int:
     out.write_text(json.dumps(res, indent=1))
     print(f"calibration {calib:.1f} ms/frame; {res['machine']['processor']}")
     if a.plot:
-        plot(rows, pathlib.Path(a.plot), f"{level.name}: run time against error ({frames} frames, "
-                                         f"calibration {calib:.1f} ms, {res['machine']['processor']})")
+        plot(rows, pathlib.Path(a.plot), _title(res))
     return 0
 
 
