@@ -213,8 +213,8 @@ compile most runs afresh (tens of seconds each)."""
 CPU_CFG_OPTIMIZATION = False
 """Taichi's control-flow-graph optimisation (store-to-load forwarding, dead stores) on the CPU. A
 substep is one fused kernel, and that pass grows faster than the kernel's length: without it
-rope_hang's first frame compiles in 14 s instead of 38 s, drape_box's in 17 s instead of 37 s,
-and frames take the same time within noise (docs/benchmarks.md, "Start"). It changes float
+rope_hang's first frame compiles in 14 s instead of 38 s and drape_box's in 17 s instead of 37 s
+(beside a sweep), and frames take the same time within noise (docs/benchmarks.md, "Start"). It changes float
 rounding, as fast compile does. GPU backends keep it (not measured there)."""
 
 
