@@ -121,7 +121,7 @@ def bench_level(path: str, frames: int = 60, overrides: dict | None = None, prof
 
 def machine() -> dict:
     return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "arch": runtime.current_arch(), "fast_compile": runtime.fast_compile()}
+            "arch": runtime.current_arch(), "backend_reason": runtime.reason(), "fast_compile": runtime.fast_compile()}
 
 
 def main(args) -> int:

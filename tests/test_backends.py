@@ -73,3 +73,12 @@ def test_a_broken_loader_counts_as_no_device(monkeypatch):
 
     monkeypatch.setattr(backends, "_load", lambda names: Broken())
     assert backends.vulkan_devices() == [] and backends.cuda_device_count() == 0
+
+
+def test_benchmarks_record_why_their_backend_was_chosen():
+    """``sandbox bench`` results name the backend and the reason for it next to the machine."""
+    from sandbox import runtime
+    from sandbox.bench import machine
+
+    m = machine()
+    assert m["arch"] == runtime.current_arch() and m["backend_reason"] == runtime.reason() == "requested cpu"
