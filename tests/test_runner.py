@@ -322,6 +322,25 @@ def test_bench_level_reports_times_passes_strain_and_speed():
     assert set(r["final_strain"]) and all(np.isfinite(v) for v in r["final_strain"].values())
     assert 0.0 < r["final_max_speed"] < 200.0
     assert r["substeps"] == {"mean": 4.0, "most": 4}  # the level's fixed count
+    assert set(r["run_max_penetration"]) == set(r["final_strain"])
+    assert all(0.0 <= v < 1.0 for v in r["run_max_penetration"].values())  # m, deepest over the run
+
+
+def test_pareto_front_and_plot_from_a_saved_run(tmp_path):
+    """tools/pareto_cloth.py: the front keeps exactly the points nothing beats on both axes (closed form), and
+    ``--replot`` draws a saved run, also one where every depth is 0."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import pareto_cloth
+
+    pts = [(64.0, 57.0), (85.0, 17.0), (120.0, 18.5), (127.0, 0.96), (175.0, 1.64), (294.0, 0.28)]
+    assert pareto_cloth.front(pts) == [0, 1, 3, 5]
+    rows = [{"label": f"s{i}", "ms": x, "stretch": y, "depth_mm": 0.0} for i, (x, y) in enumerate(pts)]
+    saved = tmp_path / "p.json"
+    saved.write_text(json.dumps({"rows": rows, "level": "drape_box", "frames": 150, "calibration_ms": 11.6,
+                                 "machine": {"processor": "x86_64"}}))
+    out = tmp_path / "p.png"
+    assert pareto_cloth.main(["--replot", str(saved), "--plot", str(out)]) == 0
+    assert out.stat().st_size > 10_000
 
 
 def test_hold_rest_holds_the_end_state_and_records_every_frame(tmp_path, monkeypatch):
