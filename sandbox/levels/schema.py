@@ -31,7 +31,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from sandbox.model.sites import MAX_COORD, ClothSite, RopeSite
+from sandbox.model.sites import MAX_COORD, ClothLine, ClothSite, RopeSite
 
 
 def fail(kind: str, message: str) -> PydanticCustomError:
@@ -214,6 +214,10 @@ class ClothSpec(_Model):
         damping: fraction of velocity lost per second (each substep scales it
             by 1 - damping * dt), in [0, 1].
         pins: particles held in place.
+        medial_sheet: cloth lines (control lines 1-4, or [P, Q] between two
+            sites) whose gathered cloth keeps to its own line's side, as
+            when two corners are knotted (paper §5.2; docs/how-it-works.md,
+            "Medial sheet"). Empty: the pass is not built.
         color, back_color: RGB of the two sides, in [0, 1].
     """
 
@@ -231,6 +235,7 @@ class ClothSpec(_Model):
     friction: Friction = 0.5
     self_collision: Bool = True
     pins: list[ClothSite] = []
+    medial_sheet: list[ClothLine] = []
     color: Color = (0.8, 0.25, 0.2)
     back_color: Color = (0.9, 0.8, 0.6)
 

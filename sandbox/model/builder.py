@@ -46,6 +46,7 @@ class ClothRange:
     back_color: tuple[float, float, float]
     self_collision: bool
     stretch_compliance: float = 0.0  # m/N; 0 = rows and columns are exact chains
+    medial_lines: tuple = ()  # particle indices of each line of the medial sheet (empty: none)
 
     @property
     def end(self) -> int:
@@ -299,6 +300,8 @@ class ModelBuilder:
             spec.name, start, nx, nz, (dx, dz), thickness, faces, tuple(spec.color), tuple(spec.back_color),
             bool(spec.self_collision), float(spec.stretch_compliance),
         )
+        cloth.medial_lines = tuple(cloth.control_line(ln) if isinstance(ln, int) else cloth.line_between(*ln)
+                                   for ln in getattr(spec, "medial_sheet", ()))
         self._pins.extend(cloth.site(p) for p in spec.pins)
         self.cloths.append(cloth)
         self.n += k

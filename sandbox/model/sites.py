@@ -60,3 +60,26 @@ RopeSite = Annotated[
     WithJsonSchema({"anyOf": [{"enum": ["start", "end"]}, {"type": "integer"}]}),
 ]
 """A rope particle: "start", "end", or an index (negative counts from the end)."""
+
+
+def _cloth_line(value: Any) -> int | tuple:
+    if isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 4:
+        return value
+    if isinstance(value, (list, tuple)) and len(value) == 2:
+        try:
+            return (_cloth_site(value[0]), _cloth_site(value[1]))
+        except PydanticCustomError:
+            pass
+    raise fail(
+        "cloth_line",
+        f"{value!r} is not a cloth line; allowed: a control line 1, 2, 3 or 4 (centre to corner A-D), "
+        "or two cloth sites [P, Q] (a corner, 'center' or [i, j]) for the straight line between them",
+    )
+
+
+ClothLine = Annotated[
+    Union[int, tuple[Any, Any]],
+    PlainValidator(_cloth_line),
+    WithJsonSchema({"anyOf": [{"enum": [1, 2, 3, 4]}, {"type": "array", "minItems": 2, "maxItems": 2}]}),
+]
+"""A line of cloth particles: control line 1-4 (centre to corner A-D) or [P, Q] between two cloth sites."""

@@ -30,7 +30,10 @@ Per substep (each pass O(n) in particles or constraints):
    ``rope_inelastic``, from what a rope contact push added) and Coulomb
    friction -- O(n)
 
-Steps 3-7b repeat ``iterations`` times. Only the passes the scene needs are
+Steps 3-7b repeat ``iterations`` times. On the last substep of a frame,
+the medial sheet of a cloth whose lines are knotted (``medial.py``) then
+runs up to 3 passes, each followed by one more iteration with the particles
+it moved held. Only the passes the scene needs are
 compiled in (``self.stages``, fixed when the solver is built). A whole
 substep is one fused kernel: every pass is a ``@ti.func`` whose loops stay
 parallel; launching each pass on its own (``profile_substep``) gives the
@@ -50,6 +53,8 @@ import taichi as ti
 
 from sandbox import runtime
 from sandbox.collision.contacts import CONTACT_FLAG, Contacts, friction_velocity, inelastic_velocity, plane_push
+from sandbox.collision.medial import PASSES as MEDIAL_PASSES
+from sandbox.collision.medial import MedialSheet
 from sandbox.collision.ropecollision import RopeCollision
 from sandbox.collision.selfcollision import ClothSelfCollision
 from sandbox.constraints.distance import xpbd_distance
@@ -273,6 +278,13 @@ class XPBDSolver:
             # restores Eq. 2 exactly and moves particles only along the rods.
             post.append(ROPE_INEXT)
         self.stages = tuple(pre + it * self.iterations + post + [VELOCITIES])
+        # The medial sheet of cloths whose lines are knotted (medial.py): on the last substep of a frame,
+        # after the iterations, up to MEDIAL_PASSES passes, each followed by one more iteration with the
+        # particles it moved held; then the passes after the iterations.
+        self.medial = [MedialSheet(state, self.w, model.data.x0, c, list(c.medial_lines))
+                       for c in model.data.cloths if c.medial_lines]
+        self.stages_body = tuple(pre + it * self.iterations)
+        self.stages_it = tuple(it)
         # Unfused: before; full chunks of `chunk` iterations, then the rest; after.
         chunk = max(1, FUSE_ITERATIONS if fuse_iterations is None else int(fuse_iterations))
         self.fused = self.iterations <= chunk
@@ -493,6 +505,13 @@ class XPBDSolver:
         skips = self._skips(k, substeps)
         if self.stages_zero:
             self._run_k(self.stages_zero, dt, frac, gh, gmu)
+        if self.medial and k == substeps - 1:
+            self._run_k(self.stages_body, dt, frac, gh, gmu)
+            self._medial(dt, frac, gh, gmu, self._run_k)
+            self._run_k(self.stages_post, dt, frac, gh, gmu)
+            for m in self.medial:
+                m.release(1.0 / dt)
+            return
         if self.fused:
             for stages, group in self.segments:
                 if group is None or not skips[group]:
@@ -506,15 +525,39 @@ class XPBDSolver:
             self._run_k(rest, dt, frac, gh, gmu)
         self._run_k(self.stages_post, dt, frac, gh, gmu)
 
-    def profile_substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
-        """The same substep, one launch per pass, accumulating ``self.timings`` (ms)."""
-        gh, gmu = self._ground()
-        for sid in self.stages_zero + self.variants[self._skips(k, substeps)][0]:
+    def _medial(self, dt: float, frac: float, gh: float, gmu: float, run) -> int:
+        """The medial-sheet passes, each followed by one iteration (``run(stages, ...)``) while any moved;
+        returns how many passes moved a particle."""
+        for n in range(MEDIAL_PASSES):
+            t0 = time.perf_counter()
+            moved = sum(m.run_pass() for m in self.medial)
+            self.timings["medial_sheet"] = self.timings.get("medial_sheet", 0.0) + 1e3 * (time.perf_counter() - t0)
+            if moved == 0:
+                return n
+            run(self.stages_it, dt, frac, gh, gmu)
+        return MEDIAL_PASSES
+
+    def _profiled(self, stages, dt: float, frac: float, gh: float, gmu: float) -> None:
+        """``stages``, one launch per pass, each timed into ``self.timings`` (ms)."""
+        for sid in stages:
             t0 = time.perf_counter()
             self._stage_k(sid, dt, frac, gh, gmu)
             ti.sync()
             name = STAGE_NAMES[sid]
             self.timings[name] = self.timings.get(name, 0.0) + 1e3 * (time.perf_counter() - t0)
+
+    def profile_substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
+        """The same substep, one launch per pass, accumulating ``self.timings`` (ms)."""
+        gh, gmu = self._ground()
+        self._profiled(self.stages_zero, dt, frac, gh, gmu)
+        if self.medial and k == substeps - 1:
+            self._profiled(self.stages_body, dt, frac, gh, gmu)
+            self._medial(dt, frac, gh, gmu, self._profiled)
+            self._profiled(self.stages_post, dt, frac, gh, gmu)
+            for m in self.medial:
+                m.release(1.0 / dt)
+            return
+        self._profiled(self.variants[self._skips(k, substeps)][0], dt, frac, gh, gmu)
 
     def forget(self) -> None:
         """Drop what carries over from one substep to the next besides the State (after a rollback)."""
