@@ -32,6 +32,8 @@ def _rod_frame(direction: np.ndarray, e2_prev: np.ndarray | None):
 
 
 SUBSTEP_TRAVEL = 0.25
+# Frames between two counts of cloth through cloth (``ClothCrossings``).
+CROSSINGS_EVERY = 5
 """The farthest a particle may move in one substep, in rest lengths (a cloth's spacing, a rope's rod): a frame
 takes more substeps while something moves faster (see ``World.frame_substeps``)."""
 
@@ -138,7 +140,19 @@ class World:
         self.stage_ms: dict[str, float] = {}
         self.profile_every = 0  # frames; 0 = never run the per-pass profile
         self.fsm = None
-        self.run_max = {"strain": {}, "penetration": {}}
+        self.run_max = {"strain": {}, "penetration": {}, "interpenetration": {}}
+        # Cloth through cloth (interpenetration.py), counted every CROSSINGS_EVERY frames for the cloths whose
+        # lines are knotted (a medial sheet) and for those a success criterion checks.
+        counted = {c.name for c in self.data.cloths if c.medial_lines}
+        for crit in level.success:
+            if crit.metric == "cloth_interpenetration":
+                counted |= set(self.cloths) if crit.of is None else (
+                    {crit.of} if isinstance(crit.of, str) else set(crit.of)) & set(self.cloths)
+        self.crossings = {}
+        if counted:
+            from sandbox.collision.interpenetration import ClothCrossings
+
+            self.crossings = {n: ClothCrossings(self.state, self.cloths[n]) for n in sorted(counted)}
 
     # ----------------------------------------------------------- building
     def _build_objects(self, specs):
@@ -403,11 +417,18 @@ class World:
             self.run_max["strain"][name] = max(self.run_max["strain"].get(name, 0.0), v)
         for name, v in pen.items():
             self.run_max["penetration"][name] = max(self.run_max["penetration"].get(name, 0.0), v)
+        # A count costs about a third of a drape_box frame at 163 x 163 (docs/benchmarks.md): every
+        # CROSSINGS_EVERY-th frame, and once more at the end for a criterion.
+        through = {name: cc.count() for name, cc in self.crossings.items()} \
+            if self.frame % CROSSINGS_EVERY == 0 else {}
+        for name, v in through.items():
+            self.run_max["interpenetration"][name] = max(self.run_max["interpenetration"].get(name, 0), v)
         row = {
             "frame": self.frame,
             "time": round(self.time, 6),
             "strain": strain,
             "penetration": pen,
+            **({"interpenetration": through} if through else {}),
             "max_speed": m["vmax"],
             "retries": self.last_retries,
             "substeps": self.last_substeps,

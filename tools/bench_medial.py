@@ -1,4 +1,5 @@
-"""Benchmark: one medial-sheet pass (sandbox/collision/medial.py) on a 163 x 163 cloth, lines 1 and 3.
+"""Benchmark: one medial-sheet pass (sandbox/collision/medial.py) on a 163 x 163 cloth, lines 1 and 3,
+and one count of cloth through cloth (sandbox/collision/interpenetration.py).
 
     python tools/bench_medial.py [--n 163] [--repeats 20] [--arch cpu]
 
@@ -6,7 +7,8 @@ Times one pass (hash of the segments, then every free particle checked and
 moved where it crossed) on three states of the cloth: flat at rest (nothing to
 move), folded in waves and squeezed to 30 % of its width, and squeezed to 5 %
 (the two lines' cloth pressed together, most particles within reach of both
-lines). Also the paper's rule by brute force in NumPy on the same state, and
+lines). Also the paper's rule by brute force in NumPy on the same state, the
+count of structural edges through the cloth's own triangles on each state, and
 the calibration workload, all in one process. Median of ``--repeats`` after
 warm-up, ``ti.sync()`` before every stop.
 """
@@ -55,7 +57,10 @@ def main() -> None:
         path = pathlib.Path(tmp) / "medial_bench.yaml"
         path.write_text(LEVEL.format(n=a.n))
         w = Sandbox.from_level(path).world
+    from sandbox.collision.interpenetration import ClothCrossings
+
     ms = w.solver.medial[0]
+    crossings = ClothCrossings(w.state, w.cloths["c"])
     x0 = w.data.x0
     calib = calibrate()
     print(f"{a.n} x {a.n} cloth, {ms.n_free} free particles, {ms.n_seg} segments; reach {ms.reach * 1e3:.1f} mm, "
@@ -77,11 +82,19 @@ def main() -> None:
             ti.sync()
             if k >= 2:
                 times.append(1e3 * (time.perf_counter() - t0))
+        w.state.x.from_numpy(x)
+        crossings.count()
+        t_cross = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            n_cross = crossings.count()
+            t_cross.append(1e3 * (time.perf_counter() - t0))
         t0 = time.perf_counter()
         _, wrong = pass_brute(x.astype(np.float64), ms.free_np, ms.own_np, *ms.seg_np, ms.step, ms.reach)
         t_np = 1e3 * (time.perf_counter() - t0)
         print(f"{label:20s} pass {np.median(times):6.2f} ms (x{np.median(times) / calib:.2f} calibration), "
-              f"moved {moved} (NumPy brute force: {int(wrong.sum())} in {t_np:.0f} ms)")
+              f"moved {moved} (NumPy brute force: {int(wrong.sum())} in {t_np:.0f} ms); "
+              f"cloth through cloth {np.median(t_cross):.1f} ms ({n_cross} edges)")
 
 
 if __name__ == "__main__":

@@ -194,6 +194,14 @@ def _wrap_turns(world, of) -> float:
     return best
 
 
+def _cloth_interpenetration(world, of) -> int:
+    names = [n for n in _bodies(world, of) if n in world.cloths]
+    if not names:
+        raise ValueError("cloth_interpenetration needs 'of' to name a cloth (or nothing, for every cloth)")
+    now = {n: world.crossings[n].count() for n in names if n in world.crossings}  # the last frame too
+    return max(max(world.run_max["interpenetration"].get(n, 0), now.get(n, 0)) for n in names)
+
+
 def _coverage(world, of) -> float:
     """Fraction of an object's surface with a cloth particle within half a thickness plus one spacing."""
     from scipy.spatial import cKDTree
@@ -219,6 +227,9 @@ METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "final_strain": ("largest relative rod/edge stretch at the end", _final_strain),
     "max_penetration": ("deepest penetration over the run (m): into ground, objects, other capsules", _max_penetration),
     "max_penetration_ratio": ("max_penetration / (rope radius or cloth thickness)", _max_penetration_ratio),
+    "cloth_interpenetration": ("most structural edges of a cloth passing through one of its own triangles in "
+                               "one frame (every 5th frame and the last), over the run: cloth through cloth",
+                               _cloth_interpenetration),
     "rope_min_gap_ratio": ("smallest capsule distance minus radii, over the radius, at the end", _rope_min_gap_ratio),
     "pin_drift": ("largest distance of a held particle from its target at the end (m)", _pin_drift),
     "max_speed": ("fastest particle at the end (m/s): small when settled", _max_speed),
