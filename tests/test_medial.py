@@ -177,3 +177,15 @@ def test_cloth_interpenetration_criterion():
     x[right, 1] += 0.002 * np.sin(90.0 * x[right, 2])
     w.state.x.from_numpy(x)
     assert METRICS["cloth_interpenetration"][1](w, "c") > 0
+
+
+def test_medial_sheet_cost_is_in_the_per_pass_timings():
+    """A profiled frame of a cloth with a medial sheet reports the passes' time as ``medial_sheet``."""
+    w = world_from_text(SHEET)
+    w.profile_every = 1
+    w.step()
+    assert w.stage_ms.get("medial_sheet", 0.0) > 0.0
+    plain = world_from_text(CROSS)
+    plain.profile_every = 1
+    plain.step()
+    assert "medial_sheet" not in plain.stage_ms and not plain.solver.medial
