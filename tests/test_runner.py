@@ -341,6 +341,33 @@ def test_pareto_front_and_plot_from_a_saved_run(tmp_path):
     out = tmp_path / "p.png"
     assert pareto_cloth.main(["--replot", str(saved), "--plot", str(out)]) == 0
     assert out.stat().st_size > 10_000
+    # The peers' points: their ms scaled by the ratio of the two runs' calibrations; a diverged peer is kept.
+    peers = {"calibration_ms": 5.8, "rows": [{"label": "a", "ms": 100.0, "stretch": 3.0, "depth_mm": 0.1, "frames": 40,
+                                              "diverged_at": None},
+                                             {"label": "b", "ms": 50.0, "stretch": 0.0, "depth_mm": 0.0, "frames": 17,
+                                              "diverged_at": 17}]}
+    got = pareto_cloth.peer_points(peers, 11.6)
+    assert [r["ms"] for r in got] == [200.0, 100.0] and got[1]["diverged_at"] == 17
+    (tmp_path / "peers.json").write_text(json.dumps(peers))
+    assert pareto_cloth.main(["--replot", str(saved), "--plot", str(out), "--peers", str(tmp_path / "peers.json")]) == 0
+
+
+def test_peers_cloth_measures_stretch_and_depth_in_closed_form():
+    """tools/peers_cloth.py (no peer needed): a grid's structural edges, the stretch of a uniformly scaled grid,
+    and how deep a point is in the box or under the ground, in y-up and z-up frames."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import peers_cloth as pc
+
+    e = pc.grid_edges(4)
+    assert len(e) == 2 * 4 * 3 and len({tuple(sorted(p)) for p in e}) == len(e)
+    ii, jj = np.meshgrid(np.arange(4), np.arange(4))
+    x = np.stack([ii.ravel() * 0.01, np.zeros(16), jj.ravel() * 0.01], 1)
+    assert pc.stretch(x * 1.03, e, 0.01) == pytest.approx(0.03, rel=1e-6)
+    assert pc.stretch(x * 0.9, e, 0.01) == 0.0  # compression is not stretch
+    pts = np.array([[0.0, 0.35, 0.0], [1.0, -0.002, 0.0], [1.0, 0.5, 1.0]])  # 5 cm into the box's top; under
+    assert pc.depth(pts, 1) == pytest.approx(0.05)
+    assert pc.depth(pts[:, [0, 2, 1]], 2) == pytest.approx(0.05)
+    assert pc.depth(pts[1:], 1) == pytest.approx(0.002)
 
 
 def test_hold_rest_holds_the_end_state_and_records_every_frame(tmp_path, monkeypatch):

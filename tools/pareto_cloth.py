@@ -52,7 +52,15 @@ def front(points: list[tuple[float, float]]) -> list[int]:
     return out
 
 
-def plot(rows: list[dict], path: pathlib.Path, title: str) -> None:
+def peer_points(peers: dict, calibration_ms: float) -> list[dict]:
+    """The peers' rows of ``tools/peers_cloth.py``, their ms scaled to this run's calibration workload (the two
+    runs are separate processes); a peer that diverged or was stopped keeps its row (``diverged_at``,
+    ``stopped``) and is not drawn."""
+    scale = calibration_ms / peers["calibration_ms"]
+    return [dict(r, ms=r["ms"] * scale) for r in peers["rows"]]
+
+
+def plot(rows: list[dict], path: pathlib.Path, title: str, peers: list[dict] = ()) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -72,6 +80,11 @@ def plot(rows: list[dict], path: pathlib.Path, title: str) -> None:
             continue
         for r, x, y in zip(rows, xs, ys):
             ax.annotate(r["label"], (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+        for r in peers:
+            if r.get("diverged_at") is None and r.get("stopped") is None:
+                ax.scatter([r["ms"]], [max(r[key], 1e-3)], color="tab:red", marker="s", zorder=3)
+                ax.annotate(f"{r['label']} ({r['frames']} frames)", (r["ms"], max(r[key], 1e-3)),
+                            textcoords="offset points", xytext=(4, -9), fontsize=7, color="tab:red")
         idx = front(list(zip(xs, ys)))
         ax.plot([xs[i] for i in idx], [ys[i] for i in idx], color="tab:orange", lw=1, zorder=2, label="front")
         if min(ys) > 0.0:
@@ -96,10 +109,12 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="runs/pareto_cloth.json")
     ap.add_argument("--plot", help="write the plot to this PNG")
     ap.add_argument("--replot", metavar="JSON", help="only draw --plot from an earlier run's --out")
+    ap.add_argument("--peers", metavar="JSON", help="also draw the peers' points from tools/peers_cloth.py's --out")
     a = ap.parse_args(argv)
     if a.replot:
         res = json.loads(pathlib.Path(a.replot).read_text())
-        plot(res["rows"], pathlib.Path(a.plot or "pareto.png"), _title(res))
+        peers = peer_points(json.loads(pathlib.Path(a.peers).read_text()), res["calibration_ms"]) if a.peers else []
+        plot(res["rows"], pathlib.Path(a.plot or "pareto.png"), _title(res), peers)
         return 0
     runtime.init(a.arch)
     from sandbox.levels import load_level
@@ -127,7 +142,8 @@ def main(argv=None) -> int:
     out.write_text(json.dumps(res, indent=1))
     print(f"calibration {calib:.1f} ms/frame; {res['machine']['processor']}")
     if a.plot:
-        plot(rows, pathlib.Path(a.plot), _title(res))
+        peers = peer_points(json.loads(pathlib.Path(a.peers).read_text()), calib) if a.peers else []
+        plot(rows, pathlib.Path(a.plot), _title(res), peers)
     return 0
 
 
