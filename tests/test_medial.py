@@ -189,3 +189,13 @@ def test_medial_sheet_cost_is_in_the_per_pass_timings():
     plain.profile_every = 1
     plain.step()
     assert "medial_sheet" not in plain.stage_ms and not plain.solver.medial
+
+
+def test_medial_sheet_runs_with_unfused_iterations():
+    """Past the fused iteration count the last substep runs its iterations in chunks, then the medial passes."""
+    w = world_from_text(SHEET.replace("fsm:", "sim: {iterations: 6}\nfsm:"))
+    assert not w.solver.fused
+    w.solver.timings = {}
+    w.step()  # not profiled: the launches a run makes
+    assert w.solver.timings.get("medial_sheet", 0.0) > 0.0
+    assert np.isfinite(w.state.x.to_numpy()).all()

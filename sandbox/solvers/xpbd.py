@@ -508,7 +508,15 @@ class XPBDSolver:
         if self.stages_zero:
             self._run_k(self.stages_zero, dt, frac, gh, gmu)
         if self.medial and k == substeps - 1:
-            self._run_k(self.stages_body, dt, frac, gh, gmu)
+            if self.fused:
+                self._run_k(self.stages_body, dt, frac, gh, gmu)
+            else:  # the iterations in the same launches as any other substep's
+                _, chunk, rest = self.variants[skips]
+                self._run_k(self.stages_pre, dt, frac, gh, gmu)
+                for _ in range(self.chunks[0]):
+                    self._run_k(chunk, dt, frac, gh, gmu)
+                if self.chunks[1]:
+                    self._run_k(rest, dt, frac, gh, gmu)
             self._medial(dt, frac, gh, gmu, self._run_k)
             self._run_k(self.stages_post, dt, frac, gh, gmu)
             for m in self.medial:
