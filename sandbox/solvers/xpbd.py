@@ -511,12 +511,7 @@ class XPBDSolver:
             if self.fused:
                 self._run_k(self.stages_body, dt, frac, gh, gmu)
             else:  # the iterations in the same launches as any other substep's
-                _, chunk, rest = self.variants[skips]
-                self._run_k(self.stages_pre, dt, frac, gh, gmu)
-                for _ in range(self.chunks[0]):
-                    self._run_k(chunk, dt, frac, gh, gmu)
-                if self.chunks[1]:
-                    self._run_k(rest, dt, frac, gh, gmu)
+                self._chunked(skips, dt, frac, gh, gmu)
             self._medial(dt, frac, gh, gmu, self._run_k)
             self._run_k(self.stages_post, dt, frac, gh, gmu)
             for m in self.medial:
@@ -527,13 +522,17 @@ class XPBDSolver:
                 if group is None or not skips[group]:
                     self._run_k(stages, dt, frac, gh, gmu)
             return
-        whole, chunk, rest = self.variants[skips]
+        self._chunked(skips, dt, frac, gh, gmu)
+        self._run_k(self.stages_post, dt, frac, gh, gmu)
+
+    def _chunked(self, skips, dt: float, frac: float, gh: float, gmu: float) -> None:
+        """An unfused substep up to its last iteration: the passes before, then the iterations in chunks."""
+        _, chunk, rest = self.variants[skips]
         self._run_k(self.stages_pre, dt, frac, gh, gmu)
         for _ in range(self.chunks[0]):
             self._run_k(chunk, dt, frac, gh, gmu)
         if self.chunks[1]:
             self._run_k(rest, dt, frac, gh, gmu)
-        self._run_k(self.stages_post, dt, frac, gh, gmu)
 
     def _medial(self, dt: float, frac: float, gh: float, gmu: float, run) -> int:
         """The medial-sheet passes, each followed by one iteration (``run(stages, ...)``) while any moved;
