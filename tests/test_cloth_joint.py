@@ -225,3 +225,38 @@ def test_joint_step_runs_on_every_kth_substep_and_the_last():
     full, lite = s.variants[False, False][0], s.variants[False, True][0]
     assert full.count(JOINT) == 1 and tuple(x for x in full if x != JOINT) == lite
     assert world_from_text(SHEET.replace("ITER", "0")).solver.joint is None
+
+
+def test_each_call_of_a_substep_starts_from_the_same_call_of_the_last_substep():
+    """With two solver iterations the step runs twice per substep: the first call meets a substep's
+    whole stretch, the second what the passes between left. Each starts from WARM_START of the
+    multipliers of the same call one substep earlier, not of the call just before it."""
+    from sandbox.solvers.cloth_joint import WARM_START
+
+    w = world_from_text(SHEET.replace("ITER", "3, iterations: 2"))
+    j = w.solver.joint
+    assert j.slots == 2
+    rng = np.random.default_rng(5)
+    x, inv_mass, rest, touching, normal = _prepare(w, rng)
+    lams = []
+    for k in range(2):  # one substep: both calls cold
+        if k:
+            x = (w.positions() + rng.normal(scale=0.001, size=x.shape)).astype(np.float32).astype(np.float64)
+            w.state.x.from_numpy(x.astype(np.float32))
+        if k == 0:
+            j.begin_substep()
+        expect, lam = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=3)
+        j.joint()
+        np.testing.assert_allclose(w.positions(), expect, atol=3e-6)
+        lams.append(lam)
+    j.begin_substep()
+    for k in range(2):  # the next substep: call k from call k of the last one
+        x = (w.positions() + rng.normal(scale=0.002 if k == 0 else 0.001, size=x.shape)).astype(np.float32)
+        w.state.x.from_numpy(x)
+        x = x.astype(np.float64)
+        expect = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=3, lam0=WARM_START * lams[k])[0]
+        other = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=3,
+                                     lam0=WARM_START * lams[1 - k])[0]
+        assert np.abs(expect - other).max() > 2e-5
+        j.joint()
+        np.testing.assert_allclose(w.positions(), expect, atol=3e-6)

@@ -77,13 +77,21 @@ class JointClothProjection(ChainProjection):
             inner products; (4,) f32 finished ones.
     """
 
-    def __init__(self, model, state, w, groups, contacts=None, peeled=None, iterations: int = 8) -> None:
+    def __init__(self, model, state, w, groups, contacts=None, peeled=None, iterations: int = 8,
+                 slots: int = 1) -> None:
         super().__init__(model, state, w, groups, contacts)
         if peeled is not None:
             self.peeled = peeled
         self.iterations = int(iterations)
         L = self.n_links
         self.lam = ti.field(ti.f32, shape=L)
+        # A substep that runs the step more than once (one per solver iteration) warm-starts each
+        # call from the same call of the last substep: the first call of a substep meets the
+        # whole of a substep's stretch, a later one only what the passes between left.
+        self.slots = max(1, int(slots))
+        if self.slots > 1:
+            self.keep = ti.field(ti.f32, shape=(self.slots, L))
+            self.call = ti.field(ti.i32, shape=())
         self.rr = ti.field(ti.f32, shape=L)
         self.z = ti.field(ti.f32, shape=L)
         self.p = ti.field(ti.f32, shape=L)
@@ -284,6 +292,12 @@ class JointClothProjection(ChainProjection):
             # Right-hand side -C, kept in rr while res holds the factors.
             self.rr[j] = self.res[j]
         self._factor()
+        slot = 0
+        if ti.static(self.slots > 1):
+            slot = ti.min(self.call[None], self.slots - 1)
+            self.call[None] = slot + 1
+            for j in range(self.n_links):
+                self.lam[j] = self.keep[slot, j]
         for j in range(self.n_links):
             self.lam[j] *= ti.static(WARM_START)
             if self.inert[j]:
@@ -312,6 +326,9 @@ class JointClothProjection(ChainProjection):
             self.dots[0] = self.dots[2]
             for j in range(self.n_links):
                 self.p[j] = self.z[j] + beta * self.p[j]
+        if ti.static(self.slots > 1):
+            for j in range(self.n_links):
+                self.keep[slot, j] = self.lam[j]
         # dx = W J^T lam, scaled back as a whole if it would throw a particle.
         self._gather(self.lam)
         self.move[None] = 0.0
@@ -334,3 +351,16 @@ class JointClothProjection(ChainProjection):
     def forget(self) -> None:
         """Start the next step cold (multipliers zero), as after a reset of the scene."""
         self.lam.fill(0.0)
+        if self.slots > 1:
+            self.keep.fill(0.0)
+
+    @ti.func
+    def begin_substep_f(self):
+        """The next call is a substep's first (its multipliers from the last substep's first call)."""
+        if ti.static(self.slots > 1):
+            self.call[None] = 0
+
+    @ti.kernel
+    def begin_substep(self):
+        """``begin_substep_f`` as a kernel of its own."""
+        self.begin_substep_f()

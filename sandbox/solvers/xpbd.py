@@ -227,7 +227,8 @@ class XPBDSolver:
         self.rope_inelastic = self.ropecol is not None and self.ropecol.inelastic
         cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
         self.joint = JointClothProjection(model, state, self.w, cloth_groups, contacts, peeled=self.inext.peeled,
-                                          iterations=int(cloth_joint)) if cloth_groups else None
+                                          iterations=int(cloth_joint), slots=int(iterations)) if cloth_groups else None
+        self.has_joint = self.joint is not None
         self.prestabilize = bool(prestabilize) and self.ropecol is not None and self.inext is not None
         # Step 0: what overlap and rod error the last substep left is removed
         # before the prediction, which takes x_prev from the result: the
@@ -415,6 +416,8 @@ class XPBDSolver:
         if ti.static(sid == SETTLE):
             self._settle()
         if ti.static(sid == PREDICT):
+            if ti.static(self.has_joint):
+                self.joint.begin_substep_f()
             self._predict(dt, frac)
         if ti.static(sid == SELF_LISTS):
             self.selfcol.refresh_f()
