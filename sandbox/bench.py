@@ -115,6 +115,8 @@ def bench_level(path: str, frames: int = 60, overrides: dict | None = None, prof
         "run_max_penetration": dict(w.run_max["penetration"]),  # m, deepest into the ground or an object
         "final_max_speed": float(row["max_speed"]),  # the last frame's metrics row
         "substeps": {"mean": w.mean_substeps, "most": max(w.substep_frames)},
+        # Newton steps the joint cloth step added where a substep left the cloth stretched (whole run).
+        "joint_settle_steps": w.solver.joint.extra_steps if getattr(w.solver, "joint", None) is not None else 0,
         "budget": w.level.budget.model_dump(),
     }
 

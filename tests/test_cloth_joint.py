@@ -3,6 +3,7 @@
 import functools
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
@@ -260,3 +261,54 @@ def test_each_call_of_a_substep_starts_from_the_same_call_of_the_last_substep():
         assert np.abs(expect - other).max() > 2e-5
         j.joint()
         np.testing.assert_allclose(w.positions(), expect, atol=3e-6)
+
+
+def test_settle_steps_again_from_zero_until_no_edge_is_stretched_past_its_bound():
+    """Where one step leaves an edge stretched by more than SETTLE_STRETCH, ``settle`` runs more Newton
+    steps, each from zero multipliers (the reference with lam0 = 0), until none is, at most SETTLE_STEPS;
+    ``stretch`` is the largest stretch a step left, as NumPy measures it; the next substep's warm start is untouched;
+    on a cloth within the bound it moves nothing."""
+    from sandbox.solvers.cloth_joint import SETTLE_STEPS, SETTLE_STRETCH
+
+    w = _sheet(2)
+    j = w.solver.joint
+    rng = np.random.default_rng(3)
+    x, inv_mass, rest, touching, normal = _prepare(w, rng, noise=0.006)
+    j.begin_substep()
+    x1, lam = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=2)
+    j.joint()
+    np.testing.assert_allclose(w.positions(), x1, atol=3e-6)
+    assert j.stretch[None] == pytest.approx(_strain(w.positions().astype(np.float64), rest).max(), abs=1e-5)
+    assert j.stretch[None] > SETTLE_STRETCH
+    expect, steps = x1, 0
+    while _strain(expect, rest).max() > SETTLE_STRETCH and steps < SETTLE_STEPS:
+        expect = joint_step_reference(expect.astype(np.float32).astype(np.float64), inv_mass, rest, touching,
+                                      normal, iterations=2)[0]
+        steps += 1
+    assert steps >= 1
+    assert j.settle(j.joint) == steps
+    np.testing.assert_allclose(w.positions(), expect, atol=2e-5)
+    assert j.stretch[None] <= SETTLE_STRETCH or steps == SETTLE_STEPS
+    np.testing.assert_allclose(j.keep.to_numpy()[0], lam, atol=1e-7)  # the next substep starts from the first step
+    if j.stretch[None] <= SETTLE_STRETCH:
+        before = w.positions().copy()
+        assert j.settle(j.joint) == 0
+        np.testing.assert_array_equal(w.positions(), before)
+
+
+def test_a_substep_settles_after_its_joint_steps_and_only_when_they_ran(monkeypatch):
+    """``sim.cloth_joint_every: 3`` over 5 substeps: the settle follows the joint steps of substeps 0, 3
+    and 4, after the iterations (here two, so two steps in each), in the fused and the profiled launch."""
+    w = world_from_text(SHEET.replace("ITER", "2, cloth_joint_every: 3, substeps: 5, iterations: 2"))
+    s = w.solver
+    calls = []
+    monkeypatch.setattr(s.joint, "settle", lambda step: calls.append(int(s.joint.call[None])) or 0)
+    s.begin_frame()
+    dt = w.dt / 5
+    for k in range(5):
+        s.substep(dt, (k + 1) / 5, k, 5)
+    assert calls == [2, 2, 2]
+    calls.clear()
+    for k in range(5):
+        s.profile_substep(dt, (k + 1) / 5, k, 5)
+    assert calls == [2, 2, 2]

@@ -516,17 +516,28 @@ class XPBDSolver:
             else:  # the iterations in the same launches as any other substep's
                 self._chunked(skips, dt, frac, gh, gmu)
             self._medial(dt, frac, gh, gmu, self._run_k)
+            self._settle_joint(skips, dt, frac, gh, gmu)
             self._run_k(self.stages_post, dt, frac, gh, gmu)
             for m in self.medial:
                 m.release(1.0 / dt)
             return
         if self.fused:
-            for stages, group in self.segments:
+            last = len(self.segments) - 1
+            for i, (stages, group) in enumerate(self.segments):
                 if group is None or not skips[group]:
+                    if i == last:  # the passes after the iterations (velocities)
+                        self._settle_joint(skips, dt, frac, gh, gmu)
                     self._run_k(stages, dt, frac, gh, gmu)
             return
         self._chunked(skips, dt, frac, gh, gmu)
+        self._settle_joint(skips, dt, frac, gh, gmu)
         self._run_k(self.stages_post, dt, frac, gh, gmu)
+
+    def _settle_joint(self, skips, dt: float, frac: float, gh: float, gmu: float) -> None:
+        """After a substep's iterations that ran the joint cloth step: more steps where it left the cloth
+        stretched (``JointClothProjection.settle``)."""
+        if self.has_joint and not skips[1]:
+            self.joint.settle(lambda: self._run_k((JOINT,), dt, frac, gh, gmu))
 
     def _chunked(self, skips, dt: float, frac: float, gh: float, gmu: float) -> None:
         """An unfused substep up to its last iteration: the passes before, then the iterations in chunks."""
@@ -565,11 +576,26 @@ class XPBDSolver:
         if self.medial and k == substeps - 1:
             self._profiled(self.stages_body, dt, frac, gh, gmu)
             self._medial(dt, frac, gh, gmu, self._profiled)
+            self._profiled_settle(self._skips(k, substeps), dt, frac, gh, gmu)
             self._profiled(self.stages_post, dt, frac, gh, gmu)
             for m in self.medial:
                 m.release(1.0 / dt)
             return
-        self._profiled(self.variants[self._skips(k, substeps)][0], dt, frac, gh, gmu)
+        skips = self._skips(k, substeps)
+        stages = self.variants[skips][0]
+        cut = len(stages) - len(self.stages_post)
+        self._profiled(stages[:cut], dt, frac, gh, gmu)
+        self._profiled_settle(skips, dt, frac, gh, gmu)
+        self._profiled(stages[cut:], dt, frac, gh, gmu)
+
+    def _profiled_settle(self, skips, dt: float, frac: float, gh: float, gmu: float) -> None:
+        """``_settle_joint`` one launch per step, timed into the joint step's entry of ``self.timings``."""
+        t0 = time.perf_counter()
+        if self.has_joint and not skips[1]:
+            self.joint.settle(lambda: self._stage_k(JOINT, dt, frac, gh, gmu))
+        ti.sync()
+        name = STAGE_NAMES[JOINT]
+        self.timings[name] = self.timings.get(name, 0.0) + 1e3 * (time.perf_counter() - t0)
 
     def forget(self) -> None:
         """Drop what carries over from one substep to the next besides the State (after a rollback)."""
