@@ -312,3 +312,14 @@ def test_a_substep_settles_after_its_joint_steps_and_only_when_they_ran(monkeypa
     for k in range(5):
         s.profile_substep(dt, (k + 1) / 5, k, 5)
     assert calls == [2, 2, 2]
+
+
+def test_a_scene_without_the_joint_step_reports_no_time_for_it():
+    """The profiled substep times the settle into the joint step's entry only where there is a joint step."""
+    for iters, expect in ((0, False), (2, True)):
+        w = world_from_text(SHEET.replace("ITER", str(iters)))
+        s = w.solver
+        s.timings = {}
+        s.begin_frame()
+        s.profile_substep(w.dt / 10, 0.1, 0, 10)
+        assert ("cloth_joint" in s.timings) == expect, s.timings

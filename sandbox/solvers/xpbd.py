@@ -590,9 +590,10 @@ class XPBDSolver:
 
     def _profiled_settle(self, skips, dt: float, frac: float, gh: float, gmu: float) -> None:
         """``_settle_joint`` one launch per step, timed into the joint step's entry of ``self.timings``."""
+        if not self.has_joint or skips[1]:
+            return
         t0 = time.perf_counter()
-        if self.has_joint and not skips[1]:
-            self.joint.settle(lambda: self._stage_k(JOINT, dt, frac, gh, gmu))
+        self.joint.settle(lambda: self._stage_k(JOINT, dt, frac, gh, gmu))
         ti.sync()
         name = STAGE_NAMES[JOINT]
         self.timings[name] = self.timings.get(name, 0.0) + 1e3 * (time.perf_counter() - t0)
