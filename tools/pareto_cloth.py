@@ -18,6 +18,8 @@ import json
 import pathlib
 import sys
 
+import numpy as np
+
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from sandbox import runtime  # noqa: E402
@@ -78,8 +80,14 @@ def plot(rows: list[dict], path: pathlib.Path, title: str, peers: list[dict] = (
         if max(ys) <= 0.0:  # a log axis and labels would only pile up on zero
             ax.text(0.5, 0.7, "0 for every setting", transform=ax.transAxes, ha="center")
             continue
-        for r, x, y in zip(rows, xs, ys):
-            ax.annotate(r["label"], (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+        span = max(xs) - min(xs) or 1.0
+        placed: list[tuple[float, float]] = []
+        for r, x, y in sorted(zip(rows, xs, ys), key=lambda t: t[1]):
+            # A label next to one already placed (close in time and, on the log axis, in error) goes below.
+            near = any(abs(x - px) < 0.08 * span and abs(np.log10(max(y, 1e-9) / max(py, 1e-9))) < 0.15
+                       for px, py in placed)
+            ax.annotate(r["label"], (x, y), textcoords="offset points", xytext=(4, -10 if near else 3), fontsize=7)
+            placed.append((x, y))
         for r in peers:
             if r.get("diverged_at") is None and r.get("stopped") is None:
                 ax.scatter([r["ms"]], [max(r[key], 1e-3)], color="tab:red", marker="s", zorder=3)
