@@ -358,9 +358,13 @@ class JointClothProjection(ChainProjection):
         for q in range(self.n_movers):
             i = self.mover[q]
             self.st.x[i] = self.st.x[i] + s * self.g[i]
-        self.stretch[None] = 0.0
+        # stretch: only what a substep's last call (or a settle step) leaves is read, so earlier calls
+        # skip the pass (the condition sits inside the loop, which stays a parallel one).
+        measure = cold == 1 or slot == self.slots - 1
+        if measure:
+            self.stretch[None] = 0.0
         for j in range(self.n_links):
-            if self.inert[j] == 0:
+            if measure and self.inert[j] == 0:
                 x = ti.static(self.st.x)
                 e = (x[self.link_b[j]] - x[self.link_a[j]]).norm() / self.rest[j] - 1.0
                 ti.atomic_max(self.stretch[None], e)
