@@ -25,6 +25,10 @@ Per substep (each pass O(n) in particles or constraints):
 7b. optionally (``cloth_joint``), one Newton step on all rows and columns
    of each cloth together, by preconditioned CG (``cloth_joint.py``) --
    O(n) per CG iteration
+7c. after the iterations, where ropes collide: the chain step once more
+   (rod lengths have the last word after the capsule pushes), then up to
+   ``FINAL_RESWEEPS`` more Newton steps of the chains still off by more
+   than the chain tolerance -- O(n)
 8. velocities from positions; contacts inelastic (no velocity away from a
    surface, nor from what a self-collision push added, nor, with
    ``rope_inelastic``, from what a rope contact push added) and Coulomb
@@ -66,6 +70,9 @@ PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACT
     JOINT, SETTLE = range(12)
 # Most iterations one fused substep kernel unrolls (the shipped levels use 1-4).
 FUSE_ITERATIONS = 4
+# Newton steps of the rope chains still off by more than the chain tolerance
+# after the chain step that ends a substep (step 7c).
+FINAL_RESWEEPS = 3
 STAGE_NAMES = {
     PREDICT: "predict",
     SELF_LISTS: "cloth_lists",
@@ -276,8 +283,11 @@ class XPBDSolver:
         if self.ropecol is not None and self.inext is not None:
             # Rope lengths have the last word: a capsule push leaves a rod
             # stretched by up to the overlap it removed, the chain step
-            # restores Eq. 2 exactly and moves particles only along the rods.
-            post.append(ROPE_INEXT)
+            # restores Eq. 2 and moves particles only along the rods. Under
+            # the contact restriction one Newton step can fall well short
+            # where a rope bends onto another (a rod 3 % long after it):
+            # up to FINAL_RESWEEPS more steps for the chains still off.
+            post += [ROPE_INEXT] + [RESWEEP] * FINAL_RESWEEPS
         self.stages = tuple(pre + it * self.iterations + post + [VELOCITIES])
         # The medial sheet of cloths whose lines are knotted (medial.py): on the last substep of a frame,
         # after the iterations, up to MEDIAL_PASSES passes, each followed by one more iteration with the
