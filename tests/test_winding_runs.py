@@ -300,3 +300,38 @@ def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(
     assert done["message"].startswith("1 particle(s) laid short"), done
     missed = float(done["message"].split("at most ")[1].split(" mm")[0])
     assert 4.0 < missed < 8.0, done  # about the 6 mm the command was held back, within the rope's sag
+
+
+def test_turns_that_slip_off_t_are_laid_again_and_hands_go_round_t():
+    """Laid turns that come off T (only the current particle is held) send the winding back to the first
+    particle that slipped (Eq. 1 along the laid part against its targets), instead of finishing a winding
+    that is not there; and a hand's path that would cut through T's tube goes round it over the tube."""
+    w, m, _ = _wind({}, until_k=10)  # 10 of its 15 particles laid: two thirds of a turn
+    xt = w.rope_positions("T").astype(np.float64)
+    assert m._slipped(xt) is None  # laid as planned
+    x = w.positions().astype(np.float64)
+    laid = [m._particle(i) for i in range(m.k)]
+    # The laid part hangs below T instead (it slipped off and swung down): no turn left.
+    slipped = x.copy()
+    cross = x[laid[0]]
+    for i, p in enumerate(laid):
+        slipped[p] = cross + np.array([0.0, -0.03 - i * m.c.rod_length, 0.0])
+    w.state.x.from_numpy(slipped.astype(np.float32))
+    back = m._slipped(xt)
+    assert back is not None and 1 <= back < 10
+    k_before = m.k
+    m.update()
+    assert m.k == back < k_before and m.relaid == 1 and "slipped" in m.note
+    assert w.control.is_driven([m._particle(back)])[0] and not w.control.is_driven([m._particle(k_before)])[0]
+    # Round T: from one side of the tube to the other, every step stays on the tube and is at most `step` long.
+    s0 = m.tube.project(cross)[0]
+    pos = m.tube.surface(s0, 0.3)[0]
+    goal = m.tube.surface(s0 + 0.01, 0.3 + np.pi - 0.2)[0]
+    step = 0.004
+    for _ in range(40):
+        nxt = m._around(pos, goal, step)
+        s, _, on = m.tube.project(nxt)
+        np.testing.assert_allclose(nxt, on, atol=1e-6)
+        assert np.linalg.norm(nxt - pos) <= step * 1.01
+        pos = nxt
+    np.testing.assert_allclose(pos, goal, atol=1e-6)

@@ -179,6 +179,7 @@ def winding_integral(
     origin: np.ndarray | None = None,
     *,
     cumulative: bool = False,
+    signed: bool = True,
 ) -> float | np.ndarray:
     """Winding integral of ``curve`` (G) around ``axis_curve`` (T), paper Eq. 1.
 
@@ -193,6 +194,7 @@ def winding_integral(
         x_hat: winding direction (normalised here), usually T's tangent at X_T.
         origin: a point on T where x = 0 (default: T's point nearest G's start).
         cumulative: if True, return the running value at each point of G.
+        signed: as ``winding_about_axis``.
 
     Returns:
         Number of turns (dimensionless); positive for a right-handed helix.
@@ -215,11 +217,12 @@ def winding_integral(
         tx += np.clip(xg - xs[0], None, 0.0)[:, None] * xh
     else:
         tx = ps[0] + (xg - xs[0])[:, None] * xh
-    return winding_about_axis(g, tx, xh, cumulative=cumulative)
+    return winding_about_axis(g, tx, xh, cumulative=cumulative, signed=signed)
 
 
 def winding_about_axis(
-    curve: np.ndarray, axis_points: np.ndarray, x_hat: np.ndarray, *, cumulative: bool = False
+    curve: np.ndarray, axis_points: np.ndarray, x_hat: np.ndarray, *, cumulative: bool = False,
+    signed: bool = True,
 ) -> float | np.ndarray:
     """Turns of ``curve`` about matched ``axis_points`` (one per curve point), about x_hat.
 
@@ -233,6 +236,8 @@ def winding_about_axis(
         axis_points: ``(n, 3)`` the matching axis points, m.
         x_hat: unit winding direction.
         cumulative: if True, return the running value at each point.
+        signed: if False, the turns of r about x_hat alone, whichever way the curve progresses
+            along it (for comparing parts of two curves that progress little).
 
     Returns:
         Number of turns (dimensionless).
@@ -244,6 +249,6 @@ def winding_about_axis(
     e2 = np.cross(xh, e1)
     ang = np.unwrap(np.arctan2(r @ e2, r @ e1))
     progress = float((curve[-1] - curve[0]) @ xh)
-    sign = 1.0 if progress >= 0.0 else -1.0
+    sign = 1.0 if progress >= 0.0 or not signed else -1.0
     w = sign * (ang - ang[0]) / (2.0 * np.pi)
     return w if cumulative else float(w[-1])

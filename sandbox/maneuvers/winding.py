@@ -33,6 +33,9 @@ STUCK_GAIN = 0.01
 """Closing on the target by less than this fraction of a rod in a frame counts as not closing."""
 MAX_TICKS_PER_PARTICLE = 90
 """Frames a wound particle may take to reach its target before the winding fails."""
+SLIP_TURNS = 0.25
+"""Turns the laid particles of C may fall behind their targets on G (Eq. 1 along each) before the winding goes
+back to the first particle that slipped and lays the turns again from there."""
 TAIL_SPEED = 1.0
 """m/s: the fastest a carried tail's tip moves (``carry_tail``): a hand's pace, which swings the tip around T with
 the winding without whipping the tail."""
@@ -108,6 +111,7 @@ class Winding(Maneuver):
         self.tick_in_particle = 0
         self.best_miss, self.stuck = np.inf, 0  # closest the current particle came to its target; frames since
         self.off_target: list[float] = []  # how far short each particle laid out of reach stayed (m)
+        self.relaid = 0  # times the laid turns slipped and were laid again (``_slipped``)
         self.targets = self._targets(xt)
         n_left = (len(xc) - 1 - self.i0) if p.direction > 0 else self.i0
         if self.n_turns - 1 > n_left:
@@ -249,18 +253,34 @@ class Winding(Maneuver):
             self.targets = self._targets(xt, keep=self.n_turns)[: self.n_max]
             self.xt_traced = xt.copy()
             self.n = len(self.targets)  # the count follows G: it may grow or shrink by one or two
+        slip = self._slipped(xt)
+        if slip is not None:
+            # The turns laid so far came off T (it moves under them; only the current particle is held):
+            # go back to the first particle that slipped and lay the turns again from there, rather than
+            # finish a winding that is not there.
+            if not (p.pinch and self.k == 0):
+                w.control.release([self._particle(self.k)])
+            self.k = slip
+            self.relaid += 1
+            self.note = f"the laid turns slipped off {p.target!r} {self.relaid} time(s) and were laid again"
+            self.tick_in_particle = 0
+            self.best_miss, self.stuck = np.inf, 0
+            self._record()
+            self.pos = w.positions()[self._particle(self.k)].astype(np.float64)
         idx = self._particle(self.k)
         target = self.targets[min(self.k, self.n - 1)]
         step = p.speed / w.fps
         d = target - self.pos
         dist = float(np.linalg.norm(d))
+        before = self.pos
         self.pos = target.copy() if dist <= step else self.pos + d * (step / dist)
         # Intermediate targets stay outside the bounding tube: a driven particle
-        # is kinematic, and a straight path through T would drag T along.
-        s_ax, _, on_tube = self.tube.project(self.pos)
+        # is kinematic, and a straight path through T would drag T along, or
+        # (projected back onto the tube from near its axis) jump through it.
+        s_ax = self.tube.project(self.pos)[0]
         axis = self.tube.frame(s_ax)[0][0]
         if np.linalg.norm(self.pos - axis) < self.R:
-            self.pos = on_tube
+            self.pos = self._around(before, target, step)
         wanted = self.pos
         self.pos = self._keep_holds(idx, self.pos)
         held_back = float(np.linalg.norm(self.pos - wanted)) > 1e-9
@@ -289,9 +309,7 @@ class Winding(Maneuver):
             self.k += 1
             self.tick_in_particle = 0
             self.best_miss, self.stuck = np.inf, 0
-            last = self._particle(min(self.k, self.n_turns) - 1)  # the turns, not the exit
-            w.record.windings[(p.active, p.target)].particles = np.arange(
-                min(self._particle(0), last), max(self._particle(0), last) + 1)
+            self._record()
             if self.k < self.n:
                 nxt = self._particle(self.k)
                 self.pos = w.positions()[nxt].astype(np.float64)
@@ -304,6 +322,38 @@ class Winding(Maneuver):
             self.progress = 1.0
             return Status.DONE
         return Status.RUNNING
+
+    def _around(self, start: np.ndarray, goal: np.ndarray, step: float) -> np.ndarray:
+        """A step of at most ``step`` from ``start`` towards ``goal`` over the tube's surface, the shorter way
+        round: (s, phi) of both on the tube, moved along together."""
+        s0, phi0, _ = self.tube.project(start)
+        s1, phi1, _ = self.tube.project(goal)
+        dphi = (phi1 - phi0 + np.pi) % (2.0 * np.pi) - np.pi
+        ds = s1 - s0
+        arc = float(np.hypot(ds, self.R * dphi))
+        f = 1.0 if arc <= step else step / arc
+        return self.tube.surface(s0 + f * ds, phi0 + f * dphi)[0]
+
+    def _record(self) -> None:
+        """The winding record's particles: C's laid turns (not the exit)."""
+        last = self._particle(max(min(self.k, self.n_turns), 1) - 1)
+        self.world.record.windings[(self.params.active, self.params.target)].particles = np.arange(
+            min(self._particle(0), last), max(self._particle(0), last) + 1)
+
+    def _slipped(self, xt: np.ndarray) -> int | None:
+        """The first laid particle whose turns about T (Eq. 1, from the crossing) fall more than
+        ``SLIP_TURNS`` behind its target's, or None. O(k + m) for k laid particles and T's m."""
+        from sandbox.geometry.winding import winding_integral
+
+        laid = min(self.k, self.n_turns)
+        if laid < 2:
+            return None
+        x = self.world.positions()[[self._particle(i) for i in range(laid)]].astype(np.float64)
+        want = winding_integral(self.targets[:laid], xt, self.x_hat, origin=x[0], cumulative=True, signed=False)
+        got = winding_integral(x, xt, self.x_hat, origin=x[0], cumulative=True, signed=False)
+        sign = 1.0 if want[-1] >= 0.0 else -1.0
+        behind = np.flatnonzero(sign * (want - got) > SLIP_TURNS)
+        return max(int(behind[0]), 1) if len(behind) else None
 
     def _keep_holds(self, idx: int, pos: np.ndarray) -> np.ndarray:
         """``pos`` kept within C's reach of the particles other hands hold, and one rod from a held neighbour.

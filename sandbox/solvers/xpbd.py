@@ -28,7 +28,7 @@ Per substep (each pass O(n) in particles or constraints):
 7c. after the iterations, where ropes collide: the chain step once more
    (rod lengths have the last word after the capsule pushes), then up to
    ``FINAL_RESWEEPS`` more Newton steps of the chains still off by more
-   than the chain tolerance -- O(n)
+   than ``FINAL_TOLERANCE`` -- O(n)
 8. velocities from positions; contacts inelastic (no velocity away from a
    surface, nor from what a self-collision push added, nor, with
    ``rope_inelastic``, from what a rope contact push added) and Coulomb
@@ -67,12 +67,17 @@ from sandbox.solvers.cloth_joint import JointClothProjection, cloth_chain_groups
 from sandbox.solvers.rope_chain import ChainProjection, build_chains, has_rope_chains
 
 PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP, \
-    JOINT, SETTLE = range(12)
+    JOINT, SETTLE, FINAL_SWEEP = range(13)
 # Most iterations one fused substep kernel unrolls (the shipped levels use 1-4).
 FUSE_ITERATIONS = 4
-# Newton steps of the rope chains still off by more than the chain tolerance
-# after the chain step that ends a substep (step 7c).
+# After the chain step that ends a substep (step 7c): up to FINAL_RESWEEPS
+# more Newton steps of the rope chains with a rod still off its length by
+# more than FINAL_TOLERANCE (relative). Each step moves particles along the
+# rods only, so it may push a rope into another where the contacts have just
+# separated them: they run only where a rod is off by half a percent or more,
+# not down to the chain tolerance.
 FINAL_RESWEEPS = 3
+FINAL_TOLERANCE = 5e-3
 STAGE_NAMES = {
     PREDICT: "predict",
     SELF_LISTS: "cloth_lists",
@@ -84,6 +89,7 @@ STAGE_NAMES = {
     VELOCITIES: "velocities",
     ROPE_INEXT: "chains",
     RESWEEP: "chain_resweeps",
+    FINAL_SWEEP: "chain_resweeps",
     JOINT: "cloth_joint",
     SETTLE: "settle",
 }
@@ -286,8 +292,9 @@ class XPBDSolver:
             # restores Eq. 2 and moves particles only along the rods. Under
             # the contact restriction one Newton step can fall well short
             # where a rope bends onto another (a rod 3 % long after it):
-            # up to FINAL_RESWEEPS more steps for the chains still off.
-            post += [ROPE_INEXT] + [RESWEEP] * FINAL_RESWEEPS
+            # up to FINAL_RESWEEPS more steps for chains still off by more
+            # than FINAL_TOLERANCE.
+            post += [ROPE_INEXT] + [FINAL_SWEEP] * FINAL_RESWEEPS
         self.stages = tuple(pre + it * self.iterations + post + [VELOCITIES])
         # The medial sheet of cloths whose lines are knotted (medial.py): on the last substep of a frame,
         # after the iterations, up to MEDIAL_PASSES passes, each followed by one more iteration with the
@@ -447,6 +454,8 @@ class XPBDSolver:
             self.inext.solve_f()
         if ti.static(sid == RESWEEP):
             self.inext.resweep_f(self.chain_tolerance)
+        if ti.static(sid == FINAL_SWEEP):
+            self.inext.resweep_f(FINAL_TOLERANCE)
         if ti.static(sid == JOINT):
             self.joint.joint_f()
         if ti.static(sid == VELOCITIES):
