@@ -29,17 +29,20 @@ class Sandbox:
         level: a validated ``Level``.
         base_dir: folder that relative asset paths are resolved against.
         arch: Taichi backend (``auto|cpu|cuda|vulkan|metal``); None = the level's.
+        tier: ``accurate`` or ``interactive`` (``sim.tier``); None = the level's, accurate if it states none.
         clock: monotonic time source in seconds for :meth:`advance` without an
             argument (injectable for tests and replays).
         max_frames_per_advance: cap on frames run by one ``advance`` call, so a
             slow host does not spiral (the rest of the debt is dropped).
     """
 
-    def __init__(self, level, *, base_dir=None, arch: str | None = None,
+    def __init__(self, level, *, base_dir=None, arch: str | None = None, tier: str | None = None,
                  clock: Callable[[], float] = time.perf_counter, max_frames_per_advance: int = 4) -> None:
         import sandbox.maneuvers  # noqa: F401  (registers the built-in maneuvers)
 
-        self.world = World(level, base_dir=base_dir, arch=arch)
+        if tier not in (None, "accurate", "interactive"):
+            raise ValueError(f"tier {tier!r} is not allowed; allowed: accurate, interactive")
+        self.world = World(level, base_dir=base_dir, arch=arch, tier=tier)
         self.world.attach_fsm()
         self.level = level
         self._clock = clock

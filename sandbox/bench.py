@@ -105,6 +105,7 @@ def bench_level(path: str, frames: int = 60, overrides: dict | None = None, prof
     m = w.solver.measure()
     return {
         "level": w.level.name,
+        "tier": w.tier,
         "particles": w.model.n,
         "frame_ms_p50": float(np.median(ms)),
         "frame_ms_p95": float(np.percentile(ms, 95)),
@@ -145,7 +146,7 @@ def main(args) -> int:
     results = {"machine": machine(), "calibration_ms": calib, "levels": {}}
     code = 0
     for path in levels:
-        r = bench_level(path, frames=args.frames)
+        r = bench_level(path, frames=args.frames, overrides={"sim.tier": args.tier} if getattr(args, "tier", None) else None)
         r["ratio_to_calibration"] = r["frame_ms_p50"] / calib
         verdicts = []
         b = r["budget"]
@@ -153,14 +154,15 @@ def main(args) -> int:
             verdicts.append(f"p50 {r['frame_ms_p50']:.1f} ms over budget {b['frame_ms_p50']} ms")
         if b.get("frame_ms_p95") and r["frame_ms_p95"] > b["frame_ms_p95"]:
             verdicts.append(f"p95 {r['frame_ms_p95']:.1f} ms over budget {b['frame_ms_p95']} ms")
-        if base and r["level"] in base["levels"]:
-            old = base["levels"][r["level"]]["ratio_to_calibration"]
+        key = f"{r['level']}@{args.tier}" if getattr(args, "tier", None) else r["level"]
+        if base and key in base["levels"]:
+            old = base["levels"][key]["ratio_to_calibration"]
             if r["ratio_to_calibration"] > 1.25 * old:
                 verdicts.append(f"ratio {r['ratio_to_calibration']:.2f} regressed from baseline {old:.2f} (>25%)")
         r["verdicts"] = verdicts
         code = code or (1 if verdicts else 0)
-        results["levels"][r["level"]] = r
-        print(f"{r['level']:>16}: p50 {r['frame_ms_p50']:7.1f} ms  p95 {r['frame_ms_p95']:7.1f} ms  "
+        results["levels"][key] = r
+        print(f"{r['level']:>16} ({r['tier']}): p50 {r['frame_ms_p50']:7.1f} ms  p95 {r['frame_ms_p95']:7.1f} ms  "
               f"x{r['ratio_to_calibration']:.2f} calib  {'; '.join(verdicts) or 'ok'}")
     print(f"calibration (Jacobi PBD 163x163, 20 sweeps): {calib:.1f} ms/frame on {results['machine']['processor']}")
     if args.save:

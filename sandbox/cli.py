@@ -7,6 +7,7 @@ import pathlib
 import sys
 
 ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
+TIERS = ("accurate", "interactive")
 
 
 class UsageError(Exception):
@@ -63,6 +64,8 @@ def cmd_run(a: argparse.Namespace) -> int:
         raise UsageError("--follow names no rope; give ROPE[,ROPE...]")
     out = pathlib.Path(a.out or pathlib.Path("runs") / pathlib.Path(a.level).stem)
     overrides = _overrides(a.set or [])
+    if a.tier:
+        overrides["sim.tier"] = a.tier
     _limits(a)
     opts = RunOptions(
         out=out, frames=a.frames, arch=a.arch, ply=a.ply, frames_every=a.frames_every or 0, video=a.video,
@@ -93,7 +96,7 @@ def cmd_play(a: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"sandbox play is unavailable ({exc}); use: sandbox run {a.level} --frames-every 5 --video")
         return 2
-    return play(a.level, arch=a.arch)
+    return play(a.level, arch=a.arch, tier=a.tier)
 
 
 def cmd_check(a: argparse.Namespace) -> int:
@@ -215,6 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--width", type=_whole(16, 8192), default=640, help="pixels of a rendered frame")
     r.add_argument("--height", type=_whole(16, 8192), default=480, help="pixels of a rendered frame")
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a level value, e.g. sim.substeps=20")
+    r.add_argument("--tier", choices=TIERS, help="frame time against accuracy (default: the level's sim.tier, "
+                                                 "else accurate); as --set sim.tier=...")
     r.add_argument("--follow", metavar="ROPE[,ROPE...]",
                    help="rendered frames follow the knot of these ropes (close-up; over the level's camera)")
     r.add_argument("--follow-distance", type=float, metavar="M",
@@ -225,6 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
     pl = sub.add_parser("play", help="open an interactive window (needs a display and Vulkan)", parents=[common])
     pl.add_argument("level")
     pl.add_argument("--arch", choices=ARCHES, default="auto")
+    pl.add_argument("--tier", choices=TIERS,
+                    help="frame time against accuracy (default: the level's sim.tier, else interactive)")
     pl.set_defaults(fn=cmd_play)
     c = sub.add_parser("check", help="validate level files", parents=[common, limits])
     c.add_argument("levels", nargs="+")
@@ -236,6 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--baseline", help="JSON baseline to compare with")
     b.add_argument("--save", help="write results as a new baseline JSON")
     b.add_argument("--arch", choices=ARCHES, default="cpu")
+    b.add_argument("--tier", choices=TIERS, help="run every level at this tier (default: each level's sim.tier)")
     b.set_defaults(fn=cmd_bench)
     sw = sub.add_parser("sweep", help="run levels under many perturbations and report their pass rates",
                         parents=[common, limits])

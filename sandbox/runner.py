@@ -195,6 +195,10 @@ def run_level(path: str | pathlib.Path, opts: RunOptions) -> tuple[int, dict]:
         summary["backend_reason"] = runtime.reason()  # auto: what the drivers reported (sandbox/backends.py)
         summary["fast_compile"] = runtime.fast_compile()  # frame times depend on it (docs/how-it-works.md, "Compile time")
         summary["particles"] = world.model.n
+        summary["tier"] = world.tier
+        coarse = {c.name: [c.nx, c.nz] for c in world.data.cloths if c.level_grid is not None}
+        if coarse:
+            summary["cloth_grids"] = coarse  # cloths the tier simulates on a coarser grid than the level's
         summary["constraints"] = world.model.m
         summary["stages"] = [*world.solver.stages_zero, *world.solver.stages]
         if opts.frames_every or opts.video or opts.gif:

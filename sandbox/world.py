@@ -40,6 +40,11 @@ takes more substeps while something moves faster (see ``World.frame_substeps``).
 STRAIN_BLOWUP = 4.0
 """Relative stretch of a rod or cloth edge (a length five times its rest) that makes a frame count as blown up."""
 
+INTERACTIVE_CLOTH_PARTICLES = 5000
+"""Most particles the interactive tier simulates a cloth with (``sim.tier``); a cloth of more is simulated on a
+coarser grid of the same size (``builder.coarse_grid``). drape_box's 163 x 163 cloth then takes 70 x 70
+(docs/benchmarks.md, "Tiers")."""
+
 
 class SimulationUnstable(RuntimeError):
     """The step kept producing NaN or exploding velocities after every retry."""
@@ -64,9 +69,11 @@ class World:
         level: a validated ``sandbox.levels.schema.Level``.
         base_dir: folder of the level file (for mesh assets).
         arch: Taichi backend; None uses the level's ``sim.arch``.
+        tier: "accurate" or "interactive"; None uses the level's ``sim.tier`` (accurate if unset).
     """
 
-    def __init__(self, level, *, base_dir: pathlib.Path | None = None, arch: str | None = None) -> None:
+    def __init__(self, level, *, base_dir: pathlib.Path | None = None, arch: str | None = None,
+                 tier: str | None = None) -> None:
         self.level = level
         self.base_dir = pathlib.Path(base_dir) if base_dir is not None else pathlib.Path.cwd()
         self.arch = runtime.init(arch or level.sim.arch)
@@ -86,14 +93,16 @@ class World:
         from sandbox.model.model import Model
         from sandbox.solvers.xpbd import SolverConfig, XPBDSolver
 
+        self.tier = tier or sim.tier or "accurate"
         builder = ModelBuilder()
         for spec in scene.ropes:
             builder.add_rope(spec)
         for spec in scene.cloths:
-            builder.add_cloth(spec)
+            builder.add_cloth(spec, max_particles=INTERACTIVE_CLOTH_PARTICLES if self.tier == "interactive" else None)
         self.data = builder.finalize_data()
         self.ropes: dict[str, RopeRange] = {r.name: r for r in self.data.ropes}
         self.cloths: dict[str, ClothRange] = {c.name: c for c in self.data.cloths}
+        self._coarser_substeps(scene)
         # Every field of the world first, their data after (one SNode tree per world, see runtime.batched).
         with runtime.batched() as self._fields:
             self.objects = self._build_objects(scene.objects)
@@ -236,6 +245,18 @@ class World:
             return np.array([c.site(site)])
         raise KeyError(f"no rope or cloth named {body!r}; ropes: {', '.join(self.ropes) or '(none)'}; "
                        f"cloths: {', '.join(self.cloths) or '(none)'}")
+
+    def _coarser_substeps(self, scene) -> None:
+        """Where the tier simulates a cloth on a coarser grid, the substep bounds scale with the finest rest
+        length: a particle crosses the same fraction of it per substep (``SUBSTEP_TRAVEL``), at the same speed."""
+        rods = [r.rod_length for r in self.data.ropes]
+        simulated = min(rods + [min(c.spacing) for c in self.data.cloths] or [np.inf])
+        level = min(rods + [min(w / (n - 1) for w, n in zip(spec.size, spec.resolution)) for spec in scene.cloths]
+                    or [np.inf])
+        if np.isfinite(simulated) and simulated > level * (1 + 1e-9):
+            ratio = level / simulated
+            self.substeps = max(1, int(round(self.substeps * ratio)))
+            self.max_substeps = max(self.substeps, int(round(self.max_substeps * ratio)))
 
     # ------------------------------------------------------------- stepping
     def _move_objects(self, t: float, dt: float) -> None:

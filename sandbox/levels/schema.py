@@ -111,6 +111,7 @@ Shape = Literal[
 Solver = Literal["xpbd", "projection"]
 RopeContacts = Literal["average", "balanced", "split"]
 Arch = Literal["auto", "cpu", "cuda", "vulkan", "metal"]
+Tier = Literal["accurate", "interactive"]
 Event = Literal["done", "failed", "timeout"]
 
 
@@ -399,6 +400,17 @@ class Sim(_Model):
     ``substeps`` nor more than ``max_substeps`` (unset: 4 x ``substeps``,
     at most 200). A host that must bound a frame's cost sets
     ``max_substeps`` lower; ``max_substeps: <substeps>`` fixes the count.
+    ``tier`` is the level's trade of frame time against accuracy:
+    ``accurate`` (the default for ``sandbox run``, ``sweep`` and ``bench``)
+    simulates every cloth at its own resolution; ``interactive`` (the
+    default for ``sandbox play`` where a level states no tier) simulates a
+    cloth of more than ``sandbox.world.INTERACTIVE_CLOTH_PARTICLES``
+    particles on a coarser grid of the same size (drape_box's 163 x 163 on
+    70 x 70), its ``[i, j]`` sites taken to the nearest point of that grid,
+    and ``substeps`` and ``max_substeps`` scaled by the finest rest length
+    of the scene before over after (a particle crosses the same fraction of
+    it per substep at the same speed; a rope finer than the coarser cloth
+    keeps them). Ropes are simulated alike in both.
     """
 
     fps: between(int, 1, 1000) = 60
@@ -417,6 +429,7 @@ class Sim(_Model):
     cloth_joint: between(int, 0, 64) = 0
     cloth_joint_every: between(int, 1, 200) = 1
     max_substeps: between(int, 1, 200) | None = None
+    tier: Tier | None = None
 
 
 class Budget(_Model):

@@ -262,7 +262,7 @@ class Winding(Maneuver):
                 w.control.release([self._particle(self.k)])
             self.k = slip
             self.relaid += 1
-            self.note = f"the laid turns slipped off {p.target!r} {self.relaid} time(s) and were laid again"
+            self._notes()
             self.tick_in_particle = 0
             self.best_miss, self.stuck = np.inf, 0
             self._record()
@@ -301,8 +301,7 @@ class Winding(Maneuver):
         out_of_reach = held_back and self.stuck >= STUCK_FRAMES
         if out_of_reach:
             self.off_target.append(miss)
-            self.note = (f"{len(self.off_target)} particle(s) laid short of a target the rope could not "
-                         f"reach (at most {max(self.off_target) * 1e3:.1f} mm)")
+            self._notes()
         if out_of_reach or (miss <= p.tolerance * self.c.rod_length and dist <= step):
             if self.k + 1 < self.n and not (p.pinch and self.k == 0):
                 w.control.release([idx])  # only the current particle is held; the last one stays held
@@ -333,6 +332,17 @@ class Winding(Maneuver):
         arc = float(np.hypot(ds, self.R * dphi))
         f = 1.0 if arc <= step else step / arc
         return self.tube.surface(s0 + f * ds, phi0 + f * dphi)[0]
+
+    def _notes(self) -> None:
+        """``note``: the particles laid short of their targets, and the times the laid turns were laid again."""
+        notes = []
+        if self.off_target:
+            notes.append(f"{len(self.off_target)} particle(s) laid short of a target the rope could not "
+                         f"reach (at most {max(self.off_target) * 1e3:.1f} mm)")
+        if self.relaid:
+            notes.append(f"the laid turns slipped off {self.params.target!r} {self.relaid} time(s) "
+                         f"and were laid again")
+        self.note = "; ".join(notes)
 
     def _record(self) -> None:
         """The winding record's particles: C's laid turns (not the exit)."""

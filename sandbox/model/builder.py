@@ -47,6 +47,7 @@ class ClothRange:
     self_collision: bool
     stretch_compliance: float = 0.0  # m/N; 0 = rows and columns are exact chains
     medial_lines: tuple = ()  # particle indices of each line of the medial sheet (empty: none)
+    level_grid: tuple[int, int] | None = None  # the level's [nx, nz] where the simulated grid is coarser
 
     @property
     def end(self) -> int:
@@ -60,8 +61,12 @@ class ClothRange:
         """Grid coordinates (i, j) of a cloth site: corner A-D, 'center' or [i, j]."""
         if isinstance(name, (list, tuple)):
             i, j = int(name[0]), int(name[1])
-            if not (0 <= i < self.nx and 0 <= j < self.nz):
-                raise ValueError(f"cloth {self.name!r}: grid index {[i, j]} outside [0,{self.nx - 1}]x[0,{self.nz - 1}]")
+            nx, nz = self.level_grid or (self.nx, self.nz)
+            if not (0 <= i < nx and 0 <= j < nz):
+                raise ValueError(f"cloth {self.name!r}: grid index {[i, j]} outside [0,{nx - 1}]x[0,{nz - 1}]")
+            if self.level_grid is not None:  # the level's grid point nearest on the coarser simulated grid
+                i = int(round(i * (self.nx - 1) / (nx - 1)))
+                j = int(round(j * (self.nz - 1) / (nz - 1)))
             return i, j
         corners = {"A": (0, 0), "B": (0, self.nz - 1), "C": (self.nx - 1, self.nz - 1), "D": (self.nx - 1, 0)}
         if name in corners:
@@ -135,6 +140,23 @@ class ModelData:
     @property
     def n_particles(self) -> int:
         return len(self.x0)
+
+
+def coarse_grid(nx: int, nz: int, max_particles: int | None) -> tuple[int, int]:
+    """The grid a cloth of ``nx`` x ``nz`` particles is simulated on with at most ``max_particles``.
+
+    The level's own grid where it is small enough (or None); otherwise the finest grid whose
+    spacing is the same multiple f of the level's along both axes, (nx - 1) / f + 1 and
+    (nz - 1) / f + 1 rounded, that fits: 163 x 163 becomes 70 x 70 within 5,000.
+    """
+    if max_particles is None or nx * nz <= max_particles:
+        return nx, nz
+    f = float(np.sqrt(nx * nz / max_particles))
+    while True:
+        cx, cz = max(2, int(round((nx - 1) / f)) + 1), max(2, int(round((nz - 1) / f)) + 1)
+        if cx * cz <= max_particles or (cx, cz) == (2, 2):
+            return cx, cz
+        f *= 1.01
 
 
 def resample_polyline(points: np.ndarray, *, segments: int | None, rod_length: float | None) -> tuple[np.ndarray, float]:
@@ -249,9 +271,15 @@ class ModelBuilder:
         self._bodies += 1
         return rope
 
-    def add_cloth(self, spec) -> ClothRange:
-        """Add a horizontal cloth grid (``ClothSpec``): structural, shear, bending edges."""
-        nx, nz = int(spec.resolution[0]), int(spec.resolution[1])
+    def add_cloth(self, spec, max_particles: int | None = None) -> ClothRange:
+        """Add a horizontal cloth grid (``ClothSpec``): structural, shear, bending edges.
+
+        With ``max_particles``, a cloth of more particles is simulated on a coarser grid of the
+        same size and proportions (``coarse_grid``); its ``[i, j]`` sites name the level's grid and
+        are taken to the nearest point of the simulated one.
+        """
+        level_nx, level_nz = int(spec.resolution[0]), int(spec.resolution[1])
+        nx, nz = coarse_grid(level_nx, level_nz, max_particles)
         w, d = float(spec.size[0]), float(spec.size[1])
         dx, dz = w / (nx - 1), d / (nz - 1)
         ii, jj = np.meshgrid(np.arange(nx), np.arange(nz))  # (nz, nx): row j, column i
@@ -299,6 +327,7 @@ class ModelBuilder:
         cloth = ClothRange(
             spec.name, start, nx, nz, (dx, dz), thickness, faces, tuple(spec.color), tuple(spec.back_color),
             bool(spec.self_collision), float(spec.stretch_compliance),
+            level_grid=None if (nx, nz) == (level_nx, level_nz) else (level_nx, level_nz),
         )
         cloth.medial_lines = tuple(cloth.control_line(ln) if isinstance(ln, int) else cloth.line_between(*ln)
                                    for ln in getattr(spec, "medial_sheet", ()))

@@ -48,7 +48,12 @@ def _no_window(level_path: str, reason: str) -> int:
     return EXIT_NO_WINDOW
 
 
-def main(level_path: str, *, arch: str = "auto") -> int:
+def play_tier(level, asked: str | None = None) -> str:
+    """The tier a level plays at: ``asked``, else the level's ``sim.tier``, else interactive."""
+    return asked or level.sim.tier or "interactive"
+
+
+def main(level_path: str, *, arch: str = "auto", tier: str | None = None) -> int:
     """Open the viewer on a level; returns the process exit code (0, or 2 without a window)."""
     reason = headless_reason()
     if reason is not None:
@@ -56,14 +61,17 @@ def main(level_path: str, *, arch: str = "auto") -> int:
     import taichi as ti
 
     from sandbox.api import Sandbox
+    from sandbox.levels import load_level
 
     def build():
-        return Sandbox.from_level(level_path, arch=arch)
+        level = load_level(level_path)
+        return Sandbox(level, base_dir=os.path.dirname(os.path.abspath(level_path)), arch=arch,
+                       tier=play_tier(level, tier))
 
     sim = build()
     from sandbox import runtime
 
-    print(f"physics on {runtime.current_arch()} ({runtime.reason()})", flush=True)
+    print(f"physics on {runtime.current_arch()} ({runtime.reason()}), {sim.world.tier} tier", flush=True)
     try:
         window = ti.ui.Window(f"sandbox play {os.path.basename(level_path)}", (1280, 720), vsync=True)
     except Exception as exc:  # GGUI raises RuntimeError without Vulkan, others on odd drivers
