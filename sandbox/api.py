@@ -40,8 +40,6 @@ class Sandbox:
                  clock: Callable[[], float] = time.perf_counter, max_frames_per_advance: int = 4) -> None:
         import sandbox.maneuvers  # noqa: F401  (registers the built-in maneuvers)
 
-        if tier not in (None, "accurate", "interactive"):
-            raise ValueError(f"tier {tier!r} is not allowed; allowed: accurate, interactive")
         self.world = World(level, base_dir=base_dir, arch=arch, tier=tier)
         self.world.attach_fsm()
         self.level = level

@@ -42,7 +42,7 @@ STRAIN_BLOWUP = 4.0
 
 INTERACTIVE_CLOTH_PARTICLES = 5000
 """Most particles the interactive tier simulates a cloth with (``sim.tier``); a cloth of more is simulated on a
-coarser grid of the same size (``builder.coarse_grid``). drape_box's 163 x 163 cloth then takes 70 x 70
+coarser grid of the same size (``builder.coarse_grid``). drape_box's 163 x 163 cloth then takes 69 x 69
 (docs/benchmarks.md, "Tiers")."""
 
 
@@ -93,6 +93,8 @@ class World:
         from sandbox.model.model import Model
         from sandbox.solvers.xpbd import SolverConfig, XPBDSolver
 
+        if tier not in (None, "accurate", "interactive"):
+            raise ValueError(f"tier {tier!r} is not allowed; allowed: accurate, interactive")
         self.tier = tier or sim.tier or "accurate"
         builder = ModelBuilder()
         for spec in scene.ropes:

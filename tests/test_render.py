@@ -380,8 +380,13 @@ def test_viewer_loop_steps_pauses_and_resets():
     from sandbox.viewer.play import Viewer
 
     class SteppingSim(FakeSim):
+        closed = False
+
         def timings(self):
             return {"solve": 1.0}
+
+        def close(self):
+            self.closed = True
 
     built = []
 
@@ -397,6 +402,7 @@ def test_viewer_loop_steps_pauses_and_resets():
     first = built[0]
     assert first.frame == 3 + 2 + 2  # frames 0-2 run, paused 3-6 with two single steps, frames 7-8 run
     assert len(built) == 2 and built[1].frame == 2  # reset on frame 9, then frames 9 and 10 run
+    assert built[0].closed and not built[1].closed  # the reset gave the old level's fields back
     assert window.calls["mesh"] >= 11 * 3  # ground + cloth + rope + ball every frame
 
 

@@ -319,6 +319,12 @@ def test_turns_that_slip_off_t_are_laid_again_and_hands_go_round_t():
     w.state.x.from_numpy(slipped.astype(np.float32))
     back = m._slipped(xt)
     assert back is not None and 1 <= back < 10
+    from sandbox.maneuvers.winding import MAX_RELAYS
+    m.relaid, m.short = MAX_RELAYS, -1
+    assert m._slipped(xt) is None  # laid again often enough: it goes on
+    m.relaid, m.short = 0, 9
+    assert m._slipped(xt) is None  # laid short up to there: those turns stay where the rope let them
+    m.short = -1
     k_before = m.k
     m.update()
     assert m.k == back < k_before and m.relaid == 1 and "slipped" in m.note

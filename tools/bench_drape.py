@@ -1,5 +1,5 @@
 """Benchmark: drape_box at 163 x 163 with self-collision on and off, one chain sweep, no joint step, fixed substeps,
-and at the interactive tier (70 x 70).
+and at the interactive tier (69 x 69).
 
 Prints median/p95 ms per frame (warm-up excluded), the per-pass split, the
 final and run-max stretch strain, and the ratio to the calibration workload
@@ -42,7 +42,7 @@ def main() -> None:
         # A fixed 10 substeps, as before adaptive substeps: faster on the
         # impact frames, which then stretch the cloth by about 20 %.
         ("fixed_substeps", {"scene.cloths.0.self_collision": True, "sim.max_substeps": 10}),
-        # The interactive tier (sim.tier): the same cloth on 70 x 70, its substeps scaled with the spacing.
+        # The interactive tier (sim.tier): the same cloth on 69 x 69, its substeps scaled with the spacing.
         ("interactive_tier", {"scene.cloths.0.self_collision": True, "sim.tier": "interactive"}),
     )
     for label, overrides in variants:

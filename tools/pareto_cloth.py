@@ -40,7 +40,7 @@ SETTINGS = (
     ("5 substeps", {"sim.substeps": 5, "sim.max_substeps": 20}),
     ("20 substeps", {"sim.substeps": 20, "sim.max_substeps": 80}),
     ("no joint, 20 substeps", {"sim.cloth_joint": 0, "sim.substeps": 20, "sim.max_substeps": 80}),
-    # The interactive tier: the same cloth on a coarser grid (70 x 70 for 163 x 163), substeps scaled with it.
+    # The interactive tier: the same cloth on a coarser grid (69 x 69 for 163 x 163), substeps scaled with it.
     ("interactive tier", {"sim.tier": "interactive"}),
     ("interactive, no joint", {"sim.tier": "interactive", "sim.cloth_joint": 0}),
 )

@@ -29,10 +29,11 @@ def main() -> None:
 
     from sandbox.levels import load_level
 
-    level_path = a.level or json.loads((run / "summary.json").read_text())["path"]
-    level = load_level(level_path)
+    summary = json.loads((run / "summary.json").read_text())
+    level = load_level(a.level or summary["path"])
     spec = next(c for c in level.scene.cloths if a.cloth in (None, c.name))
-    nx, nz = spec.resolution
+    # The grid the run simulated: the level's, or the interactive tier's coarser one.
+    nx, nz = summary.get("cloth_grids", {}).get(spec.name, spec.resolution)
     dx, dz = spec.size[0] / (nx - 1), spec.size[1] / (nz - 1)
     with np.load(run / "state.npz") as st:
         x = st[f"cloth_{spec.name}"].astype(np.float64).reshape(nz, nx, 3)

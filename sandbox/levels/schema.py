@@ -406,11 +406,11 @@ class Sim(_Model):
     default for ``sandbox play`` where a level states no tier) simulates a
     cloth of more than ``sandbox.world.INTERACTIVE_CLOTH_PARTICLES``
     particles on a coarser grid of the same size (drape_box's 163 x 163 on
-    70 x 70), its ``[i, j]`` sites taken to the nearest point of that grid,
+    69 x 69), its ``[i, j]`` sites taken to the nearest point of that grid,
     and ``substeps`` and ``max_substeps`` scaled by the finest rest length
     of the scene before over after (a particle crosses the same fraction of
-    it per substep at the same speed; a rope finer than the coarser cloth
-    keeps them). Ropes are simulated alike in both.
+    it per substep at the same speed; a rope whose rods are no longer than
+    the level's cloth spacing keeps them). Ropes are simulated alike in both.
     """
 
     fps: between(int, 1, 1000) = 60

@@ -36,6 +36,8 @@ MAX_TICKS_PER_PARTICLE = 90
 SLIP_TURNS = 0.25
 """Turns the laid particles of C may fall behind their targets on G (Eq. 1 along each) before the winding goes
 back to the first particle that slipped and lays the turns again from there."""
+MAX_RELAYS = 5
+"""Times one winding lays its turns again; after that it goes on without looking back (the criteria judge it)."""
 TAIL_SPEED = 1.0
 """m/s: the fastest a carried tail's tip moves (``carry_tail``): a hand's pace, which swings the tip around T with
 the winding without whipping the tail."""
@@ -112,6 +114,7 @@ class Winding(Maneuver):
         self.best_miss, self.stuck = np.inf, 0  # closest the current particle came to its target; frames since
         self.off_target: list[float] = []  # how far short each particle laid out of reach stayed (m)
         self.relaid = 0  # times the laid turns slipped and were laid again (``_slipped``)
+        self.short = -1  # the last particle (k) laid short of a target out of reach: turns up to it are not re-laid
         self.targets = self._targets(xt)
         n_left = (len(xc) - 1 - self.i0) if p.direction > 0 else self.i0
         if self.n_turns - 1 > n_left:
@@ -258,8 +261,7 @@ class Winding(Maneuver):
             # The turns laid so far came off T (it moves under them; only the current particle is held):
             # go back to the first particle that slipped and lay the turns again from there, rather than
             # finish a winding that is not there.
-            if not (p.pinch and self.k == 0):
-                w.control.release([self._particle(self.k)])
+            w.control.release([self._particle(self.k)])  # k >= 2 here: never the pinched crossing particle
             self.k = slip
             self.relaid += 1
             self._notes()
@@ -301,6 +303,7 @@ class Winding(Maneuver):
         out_of_reach = held_back and self.stuck >= STUCK_FRAMES
         if out_of_reach:
             self.off_target.append(miss)
+            self.short = self.k
             self._notes()
         if out_of_reach or (miss <= p.tolerance * self.c.rod_length and dist <= step):
             if self.k + 1 < self.n and not (p.pinch and self.k == 0):
@@ -356,13 +359,16 @@ class Winding(Maneuver):
         from sandbox.geometry.winding import winding_integral
 
         laid = min(self.k, self.n_turns)
-        if laid < 2:
+        if laid < 2 or self.relaid >= MAX_RELAYS:
             return None
         x = self.world.positions()[[self._particle(i) for i in range(laid)]].astype(np.float64)
-        want = winding_integral(self.targets[:laid], xt, self.x_hat, origin=x[0], cumulative=True, signed=False)
+        # The targets against the T they were traced on (the exit keeps them while T moves on).
+        want = winding_integral(self.targets[:laid], self.xt_traced, self.x_hat, origin=x[0], cumulative=True,
+                                signed=False)
         got = winding_integral(x, xt, self.x_hat, origin=x[0], cumulative=True, signed=False)
         sign = 1.0 if want[-1] >= 0.0 else -1.0
         behind = np.flatnonzero(sign * (want - got) > SLIP_TURNS)
+        behind = behind[behind > self.short]  # a particle laid short of its target stays where it could go
         return max(int(behind[0]), 1) if len(behind) else None
 
     def _keep_holds(self, idx: int, pos: np.ndarray) -> np.ndarray:

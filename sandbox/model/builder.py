@@ -65,8 +65,8 @@ class ClothRange:
             if not (0 <= i < nx and 0 <= j < nz):
                 raise ValueError(f"cloth {self.name!r}: grid index {[i, j]} outside [0,{nx - 1}]x[0,{nz - 1}]")
             if self.level_grid is not None:  # the level's grid point nearest on the coarser simulated grid
-                i = int(round(i * (self.nx - 1) / (nx - 1)))
-                j = int(round(j * (self.nz - 1) / (nz - 1)))
+                i = int(np.floor(i * (self.nx - 1) / (nx - 1) + 0.5))
+                j = int(np.floor(j * (self.nz - 1) / (nz - 1) + 0.5))
             return i, j
         corners = {"A": (0, 0), "B": (0, self.nz - 1), "C": (self.nx - 1, self.nz - 1), "D": (self.nx - 1, 0)}
         if name in corners:
@@ -87,6 +87,10 @@ class ClothRange:
         """
         (i0, j0), (i1, j1) = self.grid_of(p), self.grid_of(q)
         steps = max(abs(i1 - i0), abs(j1 - j0))
+        if steps == 0 and self.level_grid is not None and p != q:
+            raise ValueError(f"cloth {self.name!r}: the line from {p!r} to {q!r} is shorter than one spacing of the "
+                             f"{self.nx} x {self.nz} grid the interactive tier simulates it on; run it accurate "
+                             f"(sim.tier: accurate) or draw the line between points further apart")
         if steps == 0:
             raise ValueError(f"cloth {self.name!r}: a control line needs two different points, got {p!r} twice")
         t = np.linspace(0.0, 1.0, steps + 1)
@@ -147,13 +151,21 @@ def coarse_grid(nx: int, nz: int, max_particles: int | None) -> tuple[int, int]:
 
     The level's own grid where it is small enough (or None); otherwise the finest grid whose
     spacing is the same multiple f of the level's along both axes, (nx - 1) / f + 1 and
-    (nz - 1) / f + 1 rounded, that fits: 163 x 163 becomes 70 x 70 within 5,000.
+    (nz - 1) / f + 1 rounded, that fits, an odd count kept odd (a middle row and column for "center"
+    and the control lines): 163 x 163 becomes 69 x 69 within 5,000.
     """
     if max_particles is None or nx * nz <= max_particles:
         return nx, nz
+
+    def count(n: int, f: float) -> int:
+        c = max(2, int(round((n - 1) / f)) + 1)
+        if n % 2 == 1 and c % 2 == 0 and c > 2:
+            c -= 1  # an odd count keeps the middle row: "center" and the control lines stay symmetric
+        return c
+
     f = float(np.sqrt(nx * nz / max_particles))
     while True:
-        cx, cz = max(2, int(round((nx - 1) / f)) + 1), max(2, int(round((nz - 1) / f)) + 1)
+        cx, cz = count(nx, f), count(nz, f)
         if cx * cz <= max_particles or (cx, cz) == (2, 2):
             return cx, cz
         f *= 1.01

@@ -230,6 +230,7 @@ class Viewer:
             elif e.key == "n" and self.paused:
                 self.sim.step()
             elif e.key == "r":
+                self.sim.close()  # its field tree goes back before the new level takes one
                 self.sim = self.build()
             elif e.key == "f":
                 self._toggle_follow()
