@@ -343,6 +343,9 @@ def test_a_substep_ends_with_newton_steps_until_the_ropes_are_to_length():
     chains = solver.inext
     tail = solver.stages_post[:-1]
     assert tail == (ROPE_INEXT,) + (FINAL_SWEEP,) * FINAL_RESWEEPS and solver.stages_post[-1] == VELOCITIES
+    # Fused, the final steps and the velocities are a launch of their own after the rest of the substep.
+    assert sum((st for st, _ in solver.segments), ()) == solver.stages
+    assert solver.segments[-1][0] == (FINAL_SWEEP,) * FINAL_RESWEEPS + (VELOCITIES,)
     a, b = chains.link_a.to_numpy(), chains.link_b.to_numpy()
     rest = chains.rest.to_numpy().astype(np.float64)
 

@@ -28,7 +28,8 @@ Per substep (each pass O(n) in particles or constraints):
 7c. after the iterations, where ropes collide: the chain step once more
    (rod lengths have the last word after the capsule pushes), then up to
    ``FINAL_RESWEEPS`` more Newton steps of the chains still off by more
-   than ``FINAL_TOLERANCE`` -- O(n)
+   than ``FINAL_TOLERANCE``, in a launch of their own with step 8 (fused
+   into the substep they lengthened its compile by seconds) -- O(n)
 8. velocities from positions; contacts inelastic (no velocity away from a
    surface, nor from what a self-collision push added, nor, with
    ``rope_inelastic``, from what a rope contact push added) and Coulomb
@@ -331,7 +332,13 @@ class XPBDSolver:
             # The joint step is a launch of its own even on every substep: fused, it makes the substep
             # kernel compile 1.4 s longer (drape_box, empty cache) for one launch less.
             optional[JOINT] = 1
-        self.segments = _segments(self.stages, optional) if optional else ((self.stages, None),)
+        segments = _segments(self.stages, optional) if optional else ((self.stages, None),)
+        # The final Newton steps of the ropes (and the velocities after them) are a launch of their own:
+        # unrolled into the fused substep they made its compile 2-4 s longer (the rope levels' cold start).
+        self.segments = tuple(
+            part for stages, group in segments
+            for part in ((((stages[:stages.index(FINAL_SWEEP)], group), (stages[stages.index(FINAL_SWEEP):], group))
+                          if FINAL_SWEEP in stages and stages.index(FINAL_SWEEP) > 0 else ((stages, group),))))
         self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------ passes
