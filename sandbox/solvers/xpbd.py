@@ -114,6 +114,16 @@ def _segments(stages, optional: dict) -> tuple:
     return tuple(out)
 
 
+def _cut_before(segments, sid: int) -> tuple:
+    """``segments`` ((passes, group), ...) with the one that holds pass ``sid`` cut in two before its first
+    ``sid`` (the same passes in the same order, one launch more)."""
+    out = []
+    for stages, group in segments:
+        k = stages.index(sid) if sid in stages else 0
+        out += [(stages[:k], group), (stages[k:], group)] if k > 0 else [(stages, group)]
+    return tuple(out)
+
+
 def _without(stages, skip_self: bool, skip_joint: bool) -> tuple:
     """``stages`` less self-collision and/or the joint cloth step."""
     drop = ((SELF_LISTS, SELF_COLLIDE) if skip_self else ()) + ((JOINT,) if skip_joint else ())
@@ -335,10 +345,7 @@ class XPBDSolver:
         segments = _segments(self.stages, optional) if optional else ((self.stages, None),)
         # The final Newton steps of the ropes (and the velocities after them) are a launch of their own:
         # unrolled into the fused substep they made its compile 2-4 s longer (the rope levels' cold start).
-        self.segments = tuple(
-            part for stages, group in segments
-            for part in ((((stages[:stages.index(FINAL_SWEEP)], group), (stages[stages.index(FINAL_SWEEP):], group))
-                          if FINAL_SWEEP in stages and stages.index(FINAL_SWEEP) > 0 else ((stages, group),))))
+        self.segments = _cut_before(segments, FINAL_SWEEP)
         self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------ passes
