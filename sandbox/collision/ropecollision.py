@@ -71,7 +71,7 @@ class RopeCollision:
             of its shortest rod; 0 off the ropes).
     """
 
-    def __init__(self, model, state, w, contacts=None, mode: str = "average", inelastic: bool = False) -> None:
+    def __init__(self, model, state, w, contacts=None, mode: str = "average") -> None:
         if mode not in ("average", "balanced", "split"):
             raise ValueError(f"rope contact mode {mode!r}: use average, balanced or split")
         self.model = model
@@ -129,8 +129,11 @@ class RopeCollision:
         runtime.defer(self.max_move.from_numpy, np.where(np.isfinite(cap), cap, 0.0).astype(np.float32))
         # Inelastic contacts: each particle's pushes summed over a substep,
         # taken back out of its velocity along their direction (``settle``).
-        self.inelastic = bool(inelastic)
-        self.push = ti.Vector.field(3, ti.f32, shape=model.n) if self.inelastic else None
+        # Elastic, the pushes that hold a tight knot together leave speed at
+        # every substep, and a held knot never comes to rest (square_knot
+        # held after its FSM: sum of v^2 over the particles 134 m^2/s^2
+        # against 0.14 inelastic, docs/benchmarks.md, "Held knots").
+        self.push = ti.Vector.field(3, ti.f32, shape=model.n)
 
     @ti.func
     def _midpoints(self):
@@ -282,8 +285,7 @@ class RopeCollision:
                 if move > self.max_move[i]:  # a near-held lever's throw (see THROW)
                     dx *= self.max_move[i] / move
                 self.st.x[i] = self.st.x[i] + dx
-                if ti.static(self.inelastic):
-                    self.push[i] += dx
+                self.push[i] += dx
                 if ti.static(self.record):
                     la = acc.norm()
                     if la > 1e-12:
@@ -298,8 +300,8 @@ class RopeCollision:
 
     @ti.func
     def settle(self, i, v, inv_dt: ti.f32):
-        """Particle i's velocity ``v`` less what this substep's rope contact pushes put into it (inelastic
-        rope contacts: a push out of an overlap moves the particle, but it leaves no speed apart, at most
+        """Particle i's velocity ``v`` less what this substep's rope contact pushes put into it (rope
+        contacts are inelastic: a push out of an overlap moves the particle, but it leaves no speed apart, at most
         the push over the step and never past zero along it). Called from the velocity pass."""
         return push_settled_velocity(v, self.push[i], inv_dt)
 

@@ -377,12 +377,7 @@ class Sim(_Model):
     contact pass and one chain step on the positions each substep starts
     from, before its prediction, so that the overlap the last substep left
     is pushed apart without adding speed (a tight knot held by its ends;
-    ``sandbox/solvers/xpbd.py``, step 0). ``rope_inelastic`` makes rope
-    contacts inelastic: what the contact passes of a substep pushed a
-    particle is taken back out of its velocity along the push (at most the
-    push over the step, never past zero), as object contacts and cloth
-    self-contacts already are (``sandbox/collision/ropecollision.py``,
-    ``settle``). ``cloth_joint`` is the number of
+    ``sandbox/solvers/xpbd.py``, step 0). ``cloth_joint`` is the number of
     conjugate-gradient iterations of a Newton step that solves all rows and
     columns of each inextensible cloth together, after the chain sweeps of
     every iteration (0: none; see ``sandbox/solvers/cloth_joint.py``), on
@@ -425,7 +420,6 @@ class Sim(_Model):
     chain_tolerance: between(float, 0.0, 1.0) = 1e-3
     rope_contacts: RopeContacts = "average"
     prestabilize: Bool = False
-    rope_inelastic: Bool = False
     cloth_joint: between(int, 0, 64) = 0
     cloth_joint_every: between(int, 1, 200) = 1
     max_substeps: between(int, 1, 200) | None = None

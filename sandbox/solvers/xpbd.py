@@ -31,8 +31,7 @@ Per substep (each pass O(n) in particles or constraints):
    than ``FINAL_TOLERANCE``, in a launch of their own with step 8 (fused
    into the substep they lengthened its compile by seconds) -- O(n)
 8. velocities from positions; contacts inelastic (no velocity away from a
-   surface, nor from what a self-collision push added, nor, with
-   ``rope_inelastic``, from what a rope contact push added) and Coulomb
+   surface, nor from what a self-collision or rope contact push added) and Coulomb
    friction -- O(n)
 
 Steps 3-7b repeat ``iterations`` times. On the last substep of a frame,
@@ -149,7 +148,6 @@ class SolverConfig:
         cloth_joint: conjugate-gradient iterations of the joint cloth step (0: none).
         cloth_joint_every: the joint step on every k-th substep (and the last).
         prestabilize: step 0, overlap a substep left pushed apart without speed.
-        rope_inelastic: rope contact pushes taken back out of the velocity.
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
@@ -163,7 +161,6 @@ class SolverConfig:
     cloth_joint: int = 0
     cloth_joint_every: int = 1
     prestabilize: bool = False
-    rope_inelastic: bool = False
 
     @classmethod
     def of_level(cls, scene, sim, iterations: int | None = None) -> "SolverConfig":
@@ -179,7 +176,6 @@ class SolverConfig:
                                                                        for c in scene.cloths) else 1),
             chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts, cloth_joint=sim.cloth_joint,
             cloth_joint_every=sim.cloth_joint_every, prestabilize=sim.prestabilize,
-            rope_inelastic=sim.rope_inelastic,
         )
 
 
@@ -212,7 +208,7 @@ class XPBDSolver:
         self_collision_every, chain_sweeps, chain_tolerance = cfg.self_collision_every, cfg.chain_sweeps, cfg.chain_tolerance
         rope_contacts, fuse_iterations = cfg.rope_contacts, cfg.fuse_iterations
         cloth_joint, cloth_joint_every = cfg.cloth_joint, cfg.cloth_joint_every
-        prestabilize, rope_inelastic = cfg.prestabilize, cfg.rope_inelastic
+        prestabilize = cfg.prestabilize
         self.model = model
         self.st = state
         self.ctl = control
@@ -246,9 +242,8 @@ class XPBDSolver:
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
         self.has_selfcol = self.selfcol is not None
         self.inext = ChainProjection(model, state, self.w, groups, contacts) if groups else None
-        self.ropecol = RopeCollision(model, state, self.w, contacts, mode=rope_contacts,
-                                     inelastic=rope_inelastic) if model.s >= 3 else None
-        self.rope_inelastic = self.ropecol is not None and self.ropecol.inelastic
+        self.ropecol = RopeCollision(model, state, self.w, contacts, mode=rope_contacts) if model.s >= 3 else None
+        self.has_ropecol = self.ropecol is not None
         cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
         self.joint = JointClothProjection(model, state, self.w, cloth_groups, contacts, peeled=self.inext.peeled,
                                           iterations=int(cloth_joint), slots=int(iterations)) if cloth_groups else None
@@ -372,7 +367,7 @@ class XPBDSolver:
                 st.x[i] = st.x[i] + dt * v
         for e in st.lam:
             st.lam[e] = 0.0
-        if ti.static(self.rope_inelastic):
+        if ti.static(self.has_ropecol):
             self.ropecol.forget_f()
 
     @ti.func
@@ -438,7 +433,7 @@ class XPBDSolver:
                 self.contacts.hit[i] = 0.0
             if ti.static(self.has_selfcol):
                 v = self.selfcol.settle(i, v, inv_dt)
-            if ti.static(self.rope_inelastic):
+            if ti.static(self.has_ropecol):
                 v = self.ropecol.settle(i, v, inv_dt)
             st.v[i] = v
 
