@@ -295,3 +295,28 @@ def test_winding_exit_keeps_its_line_once_the_turns_are_laid_while_t_moves():
     w.rope_positions = lambda name: read(name) + (0.02 if name == target_rope else 0.0)
     m.update()
     np.testing.assert_array_equal(m.targets, before)
+
+
+def test_crossing_takes_a_waypoint_inside_an_object_out_to_its_clearance():
+    """A box holds the place A's tip is sent to: a hand keeps its particle a radius clear of every
+    surface, so it would never reach that waypoint (the Crossing would wait for it until the level ran
+    out of frames). The waypoints are taken out of the box to the radius instead (the nearest face, x
+    min; the box stands on its position), and the crossing is made."""
+    text = TWO_ROPES.replace("SIGN", "1").replace(
+        "  ropes:", "  objects:\n    - {name: lid, shape: box, params: {size: [0.06, 0.06, 0.06]}, position: [0.2, 0.604, 0.02]}\n"
+                    "  ropes:")
+    w = _world(text)
+    for _ in range(3):
+        w.step()  # the Anchorings, then the Crossing plans
+    m = w.fsm._maneuver
+    ways = np.array([q for _, _, wp in m.moves for q in wp])
+    d, _, _ = w.objects.query_numpy(ways)
+    assert d.min() >= 0.008 - 1e-5
+    a_tip = w.rope("A").end - 1
+    goal = [wp[-1] for idx, _, wp in m.moves if a_tip in np.atleast_1d(idx)][0]
+    assert abs(goal[0] - (0.17 - 0.008)) < 1e-4  # out through the nearest face, not left in the box
+    for _ in range(300):
+        w.step()
+        if w.fsm.finished:
+            break
+    assert w.fsm.succeeded, w.fsm.events[-3:]

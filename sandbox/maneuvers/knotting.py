@@ -297,6 +297,14 @@ class Crossing(Maneuver):
         for idx, pos, goal in spread:
             self.moves.append((idx, pos, [goal]))
         self._keep_holds()
+        # A waypoint inside an object (a pinched bottom carried apart across
+        # the box it lies beside) is never reached: the hand keeps its
+        # particle a radius clear of every surface on the way (``update``)
+        # and would push it back out at every frame. Each waypoint is taken
+        # out to that clearance first.
+        for k, (idx, pos, ways) in enumerate(self.moves):
+            clearance = float(w.model.data.radius[np.atleast_1d(idx)].max())
+            self.moves[k] = (idx, pos, list(w.clear_of_solids(np.array(ways), clearance)))
         self.total = sum(float(np.linalg.norm(np.diff(np.vstack([m[1], *m[2]]), axis=0), axis=1).sum())
                          for m in self.moves) or 1.0
         self.travelled = 0.0
@@ -424,7 +432,14 @@ class Crossing(Maneuver):
             w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
             arrived &= not ways
         self.progress = min(1.0, self.travelled / self.total)
+        late = self.ticks > 4 * w.fps + self.total / p.speed * w.fps
         if not arrived:
+            if late:  # a hand held back on its way (by a surface it keeps clear of) for 4 s past its plan
+                stuck = [(i, pos, ways[0]) for i, pos, ways in self.moves if ways]
+                self.message = "a hand did not reach its waypoint: " + "; ".join(
+                    f"particle {int(np.atleast_1d(i)[0])} at {np.round(pos, 3).tolist()}, "
+                    f"{float(np.linalg.norm(q - pos)):.3f} m short of {np.round(q, 3).tolist()}" for i, pos, q in stuck)
+                return Status.FAILED
             return Status.RUNNING
         x = w.positions().astype(np.float64)
         tips_ok = all(np.linalg.norm(x[idx].mean(axis=0) - pos) <= p.tolerance for idx, pos, _ in self.moves)
@@ -435,7 +450,7 @@ class Crossing(Maneuver):
             w.record.crossings[(p.active, p.target)] = 0.5 * (at_c + at_t)
             self.progress = 1.0
             return Status.DONE
-        if self.ticks > 4 * w.fps + self.total / p.speed * w.fps:
+        if late:
             self.message = (f"the strands pass {near:.3f} m apart after the tips arrived "
                             f"(a crossing needs at most {self.gap + self.c.radius + self.t.radius:.3f} m)")
             held = sorted(set(self.limits))
