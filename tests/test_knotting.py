@@ -625,3 +625,31 @@ def test_tightening_push_needs_windings_to_push():
         w.step()
     assert not w.fsm.succeeded
     assert any("push needs a winding" in str(e) for e in w.fsm.events), w.fsm.events
+
+
+def test_a_place_next_to_an_object_moves_and_turns_with_it():
+    """``{object, site, offset}``: the offset is in the object's own axes, so a pull ``toward`` a place
+    written beside a box goes where the box goes, turned with it (a shifted or turned placement of the
+    level moves its knot's pulls along)."""
+    from sandbox.maneuvers.basic import Target, resolve_target
+
+    box = "  objects:\n    - {name: box, shape: box, params: {size: [0.2, 0.1, 0.2]}, position: POS, rotation: ROT}\n  ropes:"
+    toward = "toward: {object: box, site: top, offset: [0.3, 0.1, 0]}"
+    places = {}
+    for pos, rot in (([0, 0, 0], [0, 0, 0]), ([0.1, 0.05, -0.2], [0, 90, 0])):
+        text = (SLACK_PULL.replace("  ropes:", box.replace("POS", str(pos)).replace("ROT", str(rot)))
+                .replace("direction: [1, 0, 0]", toward))
+        w = _world(text)
+        goal = places[tuple(rot)] = resolve_target(w, Target(object="box", site="top", offset=[0.3, 0.1, 0.0]))
+        for _ in range(60):
+            w.step()
+            if "Tightening" in w.fsm.state:
+                break
+        start = w.rope_positions("R")[-1].copy()
+        for _ in range(10):
+            w.step()
+        moved = w.rope_positions("R")[-1] - start
+        assert moved @ (goal - start) / (np.linalg.norm(moved) * np.linalg.norm(goal - start)) > 0.9
+    np.testing.assert_allclose(places[(0, 0, 0)], [0.3, 0.2, 0.0], atol=1e-6)
+    # Turned 90 degrees about y, the box's x axis is the world's -z.
+    np.testing.assert_allclose(places[(0, 90, 0)], [0.1, 0.25, -0.2 - 0.3], atol=1e-6)

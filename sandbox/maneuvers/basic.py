@@ -26,7 +26,10 @@ class Target(Params):
     """A point given directly or relative to an object's named site.
 
     Either ``point`` (m) or ``object`` (+ ``site``: top, bottom, front, back,
-    left, right, center); ``offset`` (m) is added in both cases.
+    left, right, center); ``offset`` (m) is added in both cases: to a point
+    in world axes, to an object's site in the object's own axes (it turns
+    with the object), so a place written next to an object moves and turns
+    with it wherever the object is placed.
     """
 
     point: Vec3 | None = None
@@ -42,7 +45,7 @@ class Target(Params):
 
 
 def resolve_target(world, target: Target) -> np.ndarray:
-    """World-space position (m) of a Target."""
+    """World-space position (m) of a Target, at the object's pose now."""
     if target.point is not None:
         base = np.asarray(target.point, float)
     else:
@@ -56,6 +59,8 @@ def resolve_target(world, target: Target) -> np.ndarray:
         if target.site not in sites:
             raise ValueError(f"object {target.object!r} has no site {target.site!r}; allowed: {', '.join(sites)}")
         base = np.asarray(sites[target.site], float)
+        _, rot = world.objects.pose(k)
+        return base + rot @ np.asarray(target.offset, float)
     return base + np.asarray(target.offset, float)
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
+from sandbox.maneuvers.basic import TargetLike, resolve_target
 from sandbox.maneuvers.knotting import _UP, Site, Vec3, _unit
 from sandbox.model.strands import base_name
 
@@ -32,7 +33,7 @@ class Pull(Params):
     body: str
     site: Site = "end"
     direction: Vec3 | Literal["away"] = "away"  # "away": from the knot's centre
-    toward: Vec3 | None = None  # m: pull toward this point instead (overrides ``direction``)
+    toward: TargetLike | None = None  # pull toward this place instead (overrides ``direction``): a point, or an object's site with an offset
     # With the Tightening's ``force`` (force mode) only:
     force: Annotated[float, pydantic.Field(gt=0)] | None = None  # N on this end instead of the Tightening's
     # m: this end is pulled at most this far from where it started, then held
@@ -52,7 +53,7 @@ class Push(Params):
     (paper Table 3: a Tightening goes "towards" the object's centre, or towards the half knot
     tied before, so that the second half knot closes onto the first)."""
 
-    toward: Vec3 | Literal["knot"]  # a point (m), or "knot": the parts of these strands wound before
+    toward: Literal["knot"] | TargetLike  # a place (a point, or an object's site with an offset), or "knot": the parts of these strands wound before
     force: Annotated[float, pydantic.Field(gt=0)]  # N, spread over the wound particles
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s the wound part moves at most under it
 
@@ -144,7 +145,7 @@ class Tightening(Maneuver):
             idx = w.site_particles(q.body, q.site)
             pos = x[idx].mean(axis=0)
             if q.toward is not None:
-                d = _unit(np.asarray(q.toward, float) - pos, _UP)
+                d = _unit(resolve_target(w, q.toward) - pos, _UP)
             elif q.direction == "away":
                 d = _unit(pos - self.centre, _UP)
             else:
@@ -191,7 +192,7 @@ class Tightening(Maneuver):
     def _push_goal(self, x: np.ndarray) -> np.ndarray:
         push = self.params.push
         if push.toward != "knot":
-            return np.asarray(push.toward, float)
+            return resolve_target(self.world, push.toward)
         return np.vstack([x[np.atleast_1d(v.particles)] for v in self._records()[:-1]]).mean(axis=0)
 
     def _push_toward(self, x: np.ndarray, idx: np.ndarray) -> None:
@@ -270,7 +271,7 @@ class Tightening(Maneuver):
                 w.control.drive(idx, x[idx])  # as far as this end gives: held there from now on
                 self.capped.add(k)
             elif q.toward is not None:  # the pull turns to keep pointing at its point
-                self._pull(idx, _unit(np.asarray(q.toward, float) - a, _UP), q.force)
+                self._pull(idx, _unit(resolve_target(w, q.toward) - a, _UP), q.force)
         self.still = self.still + 1 if speed < p.settle_speed else 0
         if self.pulled > self.best + p.stall:
             self.best, self.stalled = self.pulled, 0
