@@ -41,19 +41,18 @@ def frames():
 def test_prestabilized_overlap_is_pushed_apart_without_speed(frames):
     _, _, _, v_plain, _ = frames[False]
     w, x0, x, v, gap = frames[True]
-    # Nothing but the overlap acts. The push out of it in one substep (0.6 mm each in 1/1200 s, 0.72 m/s
-    # as speed) is taken back out of the velocity either way (inelastic rope contacts); what is left comes
-    # from the chain steps, which move the particles next to the contact along their rods: 0.033 m/s
-    # without step 0, 0.037 m/s with it, both falling to 0.014 m/s over ten frames.
-    push_speed = 0.5 * 0.2 * 2 * 0.006 * w.fps * w.substeps
-    assert np.linalg.norm(v_plain, axis=1).max() < 0.07 * push_speed
-    assert np.linalg.norm(v, axis=1).max() < 0.07 * push_speed
+    # Nothing but the overlap acts. The push out of it in one substep (0.6 mm each in 1/1200 s) is taken
+    # back out of the velocity (inelastic contacts), but the chain step after it moves the particles next
+    # to the contact along their rods, and that stays as speed (0.033 m/s); with step 0 the push comes
+    # before the prediction and half as much is left (0.018 m/s).
+    fast = np.linalg.norm(v_plain, axis=1).max()
+    assert fast > 0.02
+    assert np.linalg.norm(v, axis=1).max() < 0.7 * fast
     radius = 0.006
     assert gap.min() > -0.02 * radius
-    # Equal and opposite (split contacts), equal masses: the centre of mass stays where it was, up to
-    # 0.5 % of the 0.6 mm push (measured 2.5e-6 m: each particle's velocity is settled on its own, so the
-    # momentum it takes back is equal on both sides only to first order), and each rope's rods keep length.
-    np.testing.assert_allclose(x.mean(axis=0), x0.mean(axis=0), atol=3e-6)
+    # Equal and opposite (split contacts), equal masses: the centre of mass stays where it was,
+    # and each rope's rods keep their length.
+    np.testing.assert_allclose(x.mean(axis=0), x0.mean(axis=0), atol=1e-6)
     strain = w.solver.measure()["strain"]
     assert strain.max() < 1e-3
 
@@ -81,17 +80,3 @@ def test_step_zero_runs_only_where_asked_and_profiles_as_it_steps(frames):
         ends.append(w.positions())
     np.testing.assert_allclose(ends[0], ends[1], atol=1e-7)
     assert "settle" in w.solver.timings
-
-
-def test_step_zero_alone_pushes_the_overlap_apart_and_leaves_the_velocities():
-    """Step 0 on the state a substep starts from: one contact pass and one chain step, before the
-    prediction. The 0.2 radius overlap is (mostly) gone and no velocity changed."""
-    w = world_from_text(CROSSED.replace("PRE", "true"))
-    s = w.solver
-    s.begin_frame()
-    before = s.ropecol.measure().min()
-    gh, gmu = s._ground()
-    s._run_k(s.stages_zero, 1.0 / (w.fps * w.substeps), 1.0 / w.substeps, gh, gmu)
-    after = s.ropecol.measure().min()
-    assert before < -0.19 * 0.006 and after > 0.25 * before
-    assert np.abs(w.velocities()).max() == 0.0

@@ -134,17 +134,6 @@ class RopeCollision:
         # held after its FSM: sum of v^2 over the particles 134 m^2/s^2
         # against 0.14 inelastic, docs/benchmarks.md, "Held knots").
         self.push = ti.Vector.field(3, ti.f32, shape=model.n)
-        # Inelastic relative to the other rope: what the other side of a
-        # particle's contacts moved this substep along the push (m), from the
-        # substep's last contact pass that touched it (``settle``). A rope that a
-        # moving rope pushes moves on with it, as a particle an object pushes
-        # does; taken back in absolute terms, a wound turn pushed round by a
-        # moving rope lost that speed at every substep and slid back round it.
-        self.e0 = ti.Vector.field(3, ti.f32, shape=s)
-        self.e1 = ti.Vector.field(3, ti.f32, shape=s)
-        self.f0 = ti.field(ti.f32, shape=s)  # their weights
-        self.f1 = ti.field(ti.f32, shape=s)
-        self.surf = ti.Vector.field(3, ti.f32, shape=model.n)
 
     @ti.func
     def _midpoints(self):
@@ -194,10 +183,6 @@ class RopeCollision:
             ra = self.model.radius[a0]
             acc0 = ti.math.vec3(0.0)
             acc1 = ti.math.vec3(0.0)
-            oth0 = ti.math.vec3(0.0)  # the other sides' moves along the normals, weighted as the pushes
-            oth1 = ti.math.vec3(0.0)
-            ow0 = 0.0
-            ow1 = 0.0
             n0 = 0
             n1 = 0
             best = 1e30
@@ -252,23 +237,14 @@ class RopeCollision:
                                     k = ti.max(ti.max(self.count[a0], self.count[a1]),
                                                ti.max(self.count[b0], self.count[b1]))
                                     corr *= ti.min(1.0, ti.static(RELAX) / k)
-                                moved = ((1.0 - v) * (q0 - self.st.x_prev[b0]) + v * (q1 - self.st.x_prev[b1])).dot(nrm) * nrm
                                 if wa0 > 0.0:
                                     acc0 += (1.0 - u) * self._wapply(a0, corr)
-                                    oth0 += (1.0 - u) * moved
-                                    ow0 += 1.0 - u
                                     n0 += 1
                                 if wa1 > 0.0:
                                     acc1 += u * self._wapply(a1, corr)
-                                    oth1 += u * moved
-                                    ow1 += u
                                     n1 += 1
             self.d0[s] = acc0
             self.d1[s] = acc1
-            self.e0[s] = oth0
-            self.e1[s] = oth1
-            self.f0[s] = ow0
-            self.f1[s] = ow1
             self.c0[s] = n0
             self.c1[s] = n1
             self.gap[s] = best
@@ -290,22 +266,14 @@ class RopeCollision:
             sa = self.seg_a[i]
             sb = self.seg_b[i]
             acc = ti.math.vec3(0.0)
-            oth = ti.math.vec3(0.0)
-            ow = 0.0
             cnt = 0
             if sa >= 0:
                 acc += self.d0[sa]
-                oth += self.e0[sa]
-                ow += self.f0[sa]
                 cnt += self.c0[sa]
             if sb >= 0:
                 acc += self.d1[sb]
-                oth += self.e1[sb]
-                ow += self.f1[sb]
                 cnt += self.c1[sb]
             if cnt > 0:
-                if ow > 1e-9:
-                    self.surf[i] = oth / ow
                 dx = acc
                 if ti.static(not self.counted):
                     dx = acc / ti.cast(cnt, ti.f32)
@@ -329,17 +297,13 @@ class RopeCollision:
         """Clear the pushes summed so far (the prediction: a substep's pushes start from zero)."""
         for i in self.push:
             self.push[i] = ti.math.vec3(0.0)
-            self.surf[i] = ti.math.vec3(0.0)
 
     @ti.func
     def settle(self, i, v, inv_dt: ti.f32):
-        """Particle i's velocity ``v`` less what this substep's rope contact pushes put into it, relative to
-        the rope that pushed it (rope contacts are inelastic: a push out of an overlap moves the particle but
-        leaves it no speed away from the other rope, at most the push over the step and never past zero
-        along it; pushed by a moving rope, it keeps that rope's speed along the push). Called from the
-        velocity pass."""
-        vs = self.surf[i] * inv_dt
-        return push_settled_velocity(v - vs, self.push[i], inv_dt) + vs
+        """Particle i's velocity ``v`` less what this substep's rope contact pushes put into it (rope
+        contacts are inelastic: a push out of an overlap moves the particle, but it leaves no speed apart, at most
+        the push over the step and never past zero along it). Called from the velocity pass."""
+        return push_settled_velocity(v, self.push[i], inv_dt)
 
     @ti.func
     def solve_f(self):
