@@ -80,3 +80,17 @@ def test_step_zero_runs_only_where_asked_and_profiles_as_it_steps(frames):
         ends.append(w.positions())
     np.testing.assert_allclose(ends[0], ends[1], atol=1e-7)
     assert "settle" in w.solver.timings
+
+
+def test_step_zero_alone_pushes_the_overlap_apart_and_leaves_the_velocities():
+    """Step 0 on the state a substep starts from: one contact pass and one chain step, before the
+    prediction. The 0.2 radius overlap is (mostly) gone and no velocity changed."""
+    w = world_from_text(CROSSED.replace("PRE", "true"))
+    s = w.solver
+    s.begin_frame()
+    before = s.ropecol.measure().min()
+    gh, gmu = s._ground()
+    s._run_k(s.stages_zero, 1.0 / (w.fps * w.substeps), 1.0 / w.substeps, gh, gmu)
+    after = s.ropecol.measure().min()
+    assert before < -0.19 * 0.006 and after > 0.25 * before
+    assert np.abs(w.velocities()).max() == 0.0
