@@ -348,10 +348,9 @@ def test_tightening_by_force_pulls_until_the_rope_stops_then_holds():
     np.testing.assert_allclose(w.rope_positions("R")[[0, -1]], x[[0, -1]], atol=1e-6)
 
 
-def test_tightening_by_force_toward_a_point_keeps_aiming_at_it():
-    """A pull ``toward`` a point turns with the end: the end heads for the point and stops short of it."""
-    goal = np.array([0.5, 0.9, 0.0])
-    w = _world(SLACK_PULL.replace("direction: [1, 0, 0]", "toward: [0.5, 0.9, 0]"))
+def _heads_toward(w, goal: np.ndarray) -> np.ndarray:
+    """Step until the Tightening starts; over the next 10 frames R's pulled end heads for ``goal``.
+    Returns where the end was when the Tightening started."""
     for _ in range(60):
         w.step()
         if "Tightening" in w.fsm.state:
@@ -361,6 +360,14 @@ def test_tightening_by_force_toward_a_point_keeps_aiming_at_it():
         w.step()
     moved = w.rope_positions("R")[-1] - start
     assert moved @ (goal - start) / (np.linalg.norm(moved) * np.linalg.norm(goal - start)) > 0.9
+    return start
+
+
+def test_tightening_by_force_toward_a_point_keeps_aiming_at_it():
+    """A pull ``toward`` a point turns with the end: the end heads for the point and stops short of it."""
+    goal = np.array([0.5, 0.9, 0.0])
+    w = _world(SLACK_PULL.replace("direction: [1, 0, 0]", "toward: [0.5, 0.9, 0]"))
+    start = _heads_toward(w, goal)
     for _ in range(700):
         w.step()
         if w.fsm.finished:
@@ -641,15 +648,7 @@ def test_a_place_next_to_an_object_moves_and_turns_with_it():
                 .replace("direction: [1, 0, 0]", toward))
         w = _world(text)
         goal = places[tuple(rot)] = resolve_target(w, Target(object="box", site="top", offset=[0.3, 0.1, 0.0]))
-        for _ in range(60):
-            w.step()
-            if "Tightening" in w.fsm.state:
-                break
-        start = w.rope_positions("R")[-1].copy()
-        for _ in range(10):
-            w.step()
-        moved = w.rope_positions("R")[-1] - start
-        assert moved @ (goal - start) / (np.linalg.norm(moved) * np.linalg.norm(goal - start)) > 0.9
+        _heads_toward(w, goal)
     np.testing.assert_allclose(places[(0, 0, 0)], [0.3, 0.2, 0.0], atol=1e-6)
     # Turned 90 degrees about y, the box's x axis is the world's -z.
     np.testing.assert_allclose(places[(0, 90, 0)], [0.1, 0.25, -0.2 - 0.3], atol=1e-6)
