@@ -652,3 +652,14 @@ def test_a_place_next_to_an_object_moves_and_turns_with_it():
     np.testing.assert_allclose(places[(0, 0, 0)], [0.3, 0.2, 0.0], atol=1e-6)
     # Turned 90 degrees about y, the box's x axis is the world's -z.
     np.testing.assert_allclose(places[(0, 90, 0)], [0.1, 0.25, -0.2 - 0.3], atol=1e-6)
+    # A pull aims every frame at a place that follows the box's pose (found once, carried along).
+    from sandbox.maneuvers.basic import follow_target
+    from scipy.spatial.transform import Rotation
+
+    target = Target(object="box", site="top", offset=[0.3, 0.1, 0.0])
+    aim = follow_target(w, target)
+    np.testing.assert_allclose(aim(), places[(0, 90, 0)], atol=1e-6)
+    k = w.object_index("box")
+    w.objects.place(k, [0.4, 0.1, 0.3], Rotation.from_euler("y", 180, degrees=True).as_matrix())
+    np.testing.assert_allclose(aim(), resolve_target(w, target), atol=1e-6)
+    np.testing.assert_allclose(aim(), [0.4 - 0.3, 0.1 + 0.1 + 0.1, 0.3], atol=1e-6)  # top 0.1 above its position

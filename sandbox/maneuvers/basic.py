@@ -64,6 +64,24 @@ def resolve_target(world, target: Target) -> np.ndarray:
     return base + np.asarray(target.offset, float)
 
 
+
+def follow_target(world, target: Target):
+    """A Target as a function of no arguments giving its world position now (m), for a maneuver that aims
+    at it every frame: the site is found once (``resolve_target``, a ray cast into the object) and then
+    carried with the object's pose, so each call costs a pose read, not a search of the mesh."""
+    where = resolve_target(world, target)
+    if target.point is not None:
+        return lambda: where
+    k = world.object_index(target.object)
+    pos0, rot0 = world.objects.pose(k)
+    local = rot0.T @ (where - pos0)
+
+    def now() -> np.ndarray:
+        pos, rot = world.objects.pose(k)
+        return pos + rot @ local
+
+    return now
+
 def _as_target(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return {"point": value}

@@ -15,7 +15,7 @@ import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
-from sandbox.maneuvers.basic import TargetLike, resolve_target
+from sandbox.maneuvers.basic import TargetLike, follow_target
 from sandbox.maneuvers.knotting import _UP, Site, Vec3, _unit
 from sandbox.model.strands import base_name
 
@@ -141,11 +141,14 @@ class Tightening(Maneuver):
             if len(held):
                 w.control.release(held)
         self.ends = []
-        for q in p.pulls:
+        # Where each pull and the push aim (places beside an object follow it).
+        self.aims = [follow_target(w, q.toward) if q.toward is not None else None for q in p.pulls]
+        self.push_aim = follow_target(w, p.push.toward) if p.push is not None and p.push.toward != "knot" else None
+        for q, aim in zip(p.pulls, self.aims):
             idx = w.site_particles(q.body, q.site)
             pos = x[idx].mean(axis=0)
-            if q.toward is not None:
-                d = _unit(resolve_target(w, q.toward) - pos, _UP)
+            if aim is not None:
+                d = _unit(aim() - pos, _UP)
             elif q.direction == "away":
                 d = _unit(pos - self.centre, _UP)
             else:
@@ -192,7 +195,7 @@ class Tightening(Maneuver):
     def _push_goal(self, x: np.ndarray) -> np.ndarray:
         push = self.params.push
         if push.toward != "knot":
-            return resolve_target(self.world, push.toward)
+            return self.push_aim()
         return np.vstack([x[np.atleast_1d(v.particles)] for v in self._records()[:-1]]).mean(axis=0)
 
     def _push_toward(self, x: np.ndarray, idx: np.ndarray) -> None:
@@ -271,7 +274,7 @@ class Tightening(Maneuver):
                 w.control.drive(idx, x[idx])  # as far as this end gives: held there from now on
                 self.capped.add(k)
             elif q.toward is not None:  # the pull turns to keep pointing at its point
-                self._pull(idx, _unit(resolve_target(w, q.toward) - a, _UP), q.force)
+                self._pull(idx, _unit(self.aims[k]() - a, _UP), q.force)
         self.still = self.still + 1 if speed < p.settle_speed else 0
         if self.pulled > self.best + p.stall:
             self.best, self.stalled = self.pulled, 0
