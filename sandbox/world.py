@@ -213,6 +213,16 @@ class World:
             raise KeyError(f"no rope named {base!r}; ropes: {', '.join(self.ropes) or '(none)'}")
         return self.ropes[base] if base == name else strand_range(self.ropes[base], name)
 
+    def strand(self, name: str):
+        """A ``Strand`` (see ``sandbox.model.strands``): a rope ``R``, a run ``R[i0:i1]`` of one, or a cloth
+        line ``F.line1``-``F.line4`` / ``F.P..Q``."""
+        from sandbox.model.strands import base_name, cloth_strand, parse_cloth_line, rope_strand
+
+        line = parse_cloth_line(name)
+        if line is None:
+            return rope_strand(self.rope(name), self.rope(base_name(name)))
+        return cloth_strand(name, self.cloth(line[0]), self.data.x0)
+
     def cloth(self, name: str) -> ClothRange:
         if name not in self.cloths:
             raise KeyError(f"no cloth named {name!r}; cloths: {', '.join(self.cloths) or '(none)'}")
@@ -227,9 +237,18 @@ class World:
         """Global particle indices of a named site of a rope or cloth.
 
         Rope (or strand ``R[i0:i1]``) sites: ``start``, ``end``, ``all``, an
-        index, or ``[i0, i1]`` (a range, end exclusive). Cloth sites: a corner ``A``-``D``, ``center``, ``[i, j]``,
+        index, or ``[i0, i1]`` (a range, end exclusive); a cloth line ``F.line1`` takes the same sites,
+        counted from its first point (``start``: the cloth's centre, ``end``: the corner). Cloth sites: a corner ``A``-``D``, ``center``, ``[i, j]``,
         ``line1``-``line4`` (a control line) or an area ``a``-``d`` (the quadrant of that corner).
         """
+        from sandbox.model.strands import parse_cloth_line
+
+        if parse_cloth_line(body) is not None:  # a cloth line: its sites count along it, as a rope's
+            from sandbox.model.strands import rope_site_span
+
+            st = self.strand(body)
+            lo, hi = rope_site_span(body, len(st), site)
+            return st.idx[lo:hi]
         if body in self.ropes or "[" in body:
             r = self.rope(body)  # a rope or a strand R[i0:i1]; indices count from the strand's start
             from sandbox.model.strands import rope_site_span

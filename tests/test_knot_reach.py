@@ -289,17 +289,23 @@ def test_winding_exit_keeps_its_line_once_the_turns_are_laid_while_t_moves():
     """T moved by 2 cm: G and every target are traced again while turns are being laid; once they are
     (the particle to drive is on the exit), the exit line stays where it was."""
     w, m = _winding_world(", exit: 0.05")
-    target_rope = m.params.target
-    read = w.rope_positions
-    w.rope_positions = lambda name: read(name) + (0.02 if name == target_rope else 0.0)
+    read = w.positions
+    t_idx = m.t.idx
+
+    def moved():
+        x = read().copy()
+        x[t_idx] += 0.02
+        return x
+
+    w.positions = moved
     before = m.targets.copy()
     m.update()
     assert np.linalg.norm(m.targets - before, axis=1).max() > 0.01  # re-traced on the moved T
-    w.rope_positions = read
+    w.positions = read
     m.update()  # back where it was
     m.k = m.n_turns  # the turns laid: the next particle goes to the first exit target
     before = m.targets.copy()
-    w.rope_positions = lambda name: read(name) + (0.02 if name == target_rope else 0.0)
+    w.positions = moved
     m.update()
     np.testing.assert_array_equal(m.targets, before)
 

@@ -96,9 +96,14 @@ def test_crossing_targets_across_sets_x_when_the_bottoms_coincide():
     assert (tc - x) @ xh > 0 and (tt - x) @ xh < 0
 
 
-class _Strand:
-    def __init__(self, name, start, end, radius=0.005, rod_length=0.01):
-        self.name, self.start, self.end, self.radius, self.rod_length = name, start, end, radius, rod_length
+def _Strand(name, start, end, radius=0.005, rod_length=0.01, whole=None):
+    """A rope strand over particles [start, end) of a rope spanning ``whole`` (default: the strand itself)."""
+    from sandbox.model.builder import RopeRange
+    from sandbox.model.strands import rope_strand
+
+    lo, hi = whole or (start, end)
+    rope = RopeRange(name.split("[")[0], lo, hi, rod_length, radius, (0, 0, 0))
+    return rope_strand(RopeRange(name, start, end, rod_length, radius, (0, 0, 0)), rope)
 
 
 def test_knot_exit_is_the_touching_particle_nearest_the_tip():
@@ -114,18 +119,32 @@ def test_knot_exit_is_the_touching_particle_nearest_the_tip():
     far[41:, 2] = 0.05
     assert knot_exit(far, A, [B], toward=40) is None
     # One rope folded on itself: particles within its own bend do not count as touching.
-    assert knot_exit(a, _Strand("R[:20]", 0, 20), [_Strand("R[20:]", 20, 41)], toward=0) is None
+    assert knot_exit(a, _Strand("R[:20]", 0, 20, whole=(0, 41)), [_Strand("R[20:]", 20, 41, whole=(0, 41))],
+                     toward=0) is None
 
 
 def test_closest_approach_skips_the_same_bend():
     t = np.linspace(0, 1, 11)
     a = np.stack([t, 0 * t, 0 * t], 1)
     b = np.stack([0.5 + 0 * t, t - 0.5, 0.05 + 0 * t], 1)
-    d, i, j = closest_approach(a, b, np.arange(11), np.arange(100, 111), exclude=-1)
+    d, i, j = closest_approach(a, b)
     assert d == pytest.approx(0.05) and a[i, 0] == pytest.approx(0.5) and b[j, 1] == pytest.approx(0.0)
-    # The same indices on one rope, excluded within 200 particles: nothing is left but inf.
-    d, _, _ = closest_approach(a, b, np.arange(11), np.arange(11), exclude=200)
+    # Every pair the same bend: nothing is left but inf.
+    d, _, _ = closest_approach(a, b, np.zeros((11, 11), bool))
     assert d == np.inf
+    # A rope folded back on itself 5 cm apart: as two ropes every facing pair is 5 cm apart, the pair at
+    # the fold included; as two strands of one rope the fold's pairs (within half a turn of the tube
+    # along the rope: 2.35 rods here) are the same bend and skipped.
+    from sandbox.maneuvers.knotting import strand_approach
+
+    back = np.stack([1.0 - t, 0.05 + 0 * t, 0 * t], 1)
+    x = np.vstack([a, back])
+    one = (_Strand("R[:11]", 0, 11, rod_length=0.1, whole=(0, 22)), _Strand("R[11:]", 11, 22, rod_length=0.1, whole=(0, 22)))
+    two = (_Strand("P", 0, 11, rod_length=0.1), _Strand("Q", 11, 22, rod_length=0.1))
+    assert closest_approach(a, back)[0] == pytest.approx(0.05)
+    assert strand_approach(x, *two)[0] == pytest.approx(0.05)
+    d, i, j = strand_approach(x, *one)
+    assert d == pytest.approx(0.05) and (11 + j) - i > 2.35
 
 
 def test_smooth_axis_removes_kinks_and_respects_max_shift():
@@ -500,12 +519,12 @@ def test_crossing_contact_offset_pinches_each_strand_out_of_the_contact():
 
     w = _world(TOUCHING.replace("OFFSET", "0.05"))
     x = w.positions().astype(np.float64)
-    a, b = w.rope("A"), w.rope("B")
-    exits = [knot_exit(x, r, [a, b], r.end - 1) for r in (a, b)]
+    a, b = w.strand("A"), w.strand("B")
+    exits = [knot_exit(x, r, [a, b], int(r.idx[-1])) for r in (a, b)]
     assert all(e is not None for e in exits)
     w.step()
     for e, r in zip(exits, (a, b)):
-        assert w.control.is_driven([e + 5])[0]  # 5 rods of 0.01 m towards the tip at r.end - 1
+        assert w.control.is_driven([e + 5])[0]  # 5 rods of 0.01 m towards the tip, the rope's last particle
         assert not w.control.is_driven([e])[0]
     w0 = _world(TOUCHING.replace("OFFSET", "0"))
     w0.step()

@@ -301,19 +301,20 @@ def used_maneuvers(flat_states: Mapping[str, Any]) -> set[str]:
     return {s.maneuver for s in flat_states.values()}
 
 
-_ROPE_KEYS = ("active", "target")  # maneuver parameters that name a rope or a strand of one
-_BODY_KEYS = ("body",)  # ... a rope, a strand or a cloth
+_ROPE_KEYS = ("active", "target")  # maneuver parameters that name a rope, a strand of one or a cloth line
+_BODY_KEYS = ("body",)  # ... a rope, a strand, a cloth line or a cloth
 
 
 def check_references(data: Any, states: Mapping[str, Any]) -> list[Finding]:
     """Bodies, strands and objects named in maneuver parameters must exist in the scene.
 
     Walks each expanded state's parameters (after macro substitution): ``active``
-    and ``target`` name ropes or strands ``R[i0:i1]``; ``body`` a rope, strand or
-    cloth; ``knot`` a list of those; ``object`` (inside a target) an object.
+    and ``target`` name ropes, strands ``R[i0:i1]`` or cloth lines (``F.line1``,
+    ``F.P..Q``); ``body`` any of those or a cloth; ``knot`` a list of strands;
+    ``object`` (inside a target) an object.
     """
     from sandbox.levels.limits import body_sizes  # noqa: PLC0415
-    from sandbox.model.strands import parse_strand, rope_site_span
+    from sandbox.model.strands import parse_cloth_line, parse_strand, rope_site_span
 
     names = scene_names(data)
     ropes, cloths, objects = set(names["rope"]), set(names["cloth"]), set(names["object"])
@@ -355,8 +356,32 @@ def check_references(data: Any, states: Mapping[str, Any]) -> list[Finding]:
     def allowed(kinds: tuple[str, ...]) -> str:
         return "; ".join(f"{k}s: {', '.join(names[k]) or '(none)'}" for k in kinds)
 
+    def cloth_line(value: str, path: tuple, state: str) -> bool:
+        """A cloth line ``F.line1`` / ``F.P..Q``: its cloth must exist and its points lie on the grid (True if it
+        is one, reported or not)."""
+        try:
+            line = parse_cloth_line(value)
+        except ValueError as exc:
+            out.append(Finding(path, f"state {state!r}: {exc}"))
+            return True
+        if line is None:
+            return False
+        name, a, b = line
+        if name not in cloths:
+            out.append(Finding(path, f"state {state!r}: cloth line {value!r}: unknown cloth {name!r}; "
+                                     f"{allowed(('cloth',))}"))
+            return True
+        nx, nz = cloth_n[name]
+        for pt in (a, b):
+            if isinstance(pt, list) and not (0 <= pt[0] < nx and 0 <= pt[1] < nz):
+                out.append(Finding(path, f"state {state!r}: cloth line {value!r}: cloth {name!r} is {nx} x {nz} "
+                                         f"particles; allowed grid points [0, {nx - 1}] x [0, {nz - 1}], got {pt}"))
+        if a == b:
+            out.append(Finding(path, f"state {state!r}: cloth line {value!r} runs from a point to itself"))
+        return True
+
     def body(value: Any, path: tuple, state: str, kinds: tuple[str, ...]) -> None:
-        if not isinstance(value, str):
+        if not isinstance(value, str) or cloth_line(value, path, state):
             return
         try:
             base = parse_strand(value)[0]

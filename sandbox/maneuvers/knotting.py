@@ -4,21 +4,21 @@ A knot is crossings and windings repeated (paper Fig. 3): ``Crossing`` lifts
 two strands and brings them across each other at a point X above the middle
 of their constrained bottom points; ``Winding`` (``winding.py``) winds one
 around the other from X; ``Tightening`` (``tightening.py``) pulls the ends
-apart until the knot is tight. Strands are ropes or runs of one rope
-(``R[i0:i1]``), so the same steps tie a self-knot (one rope crossed with
-itself) and knots between two ropes or two control lines.
+apart until the knot is tight. Strands are ropes, runs of one rope
+(``R[i0:i1]``) or lines of a cloth (``F.line1``; ``sandbox.model.strands``),
+so the same steps tie a self-knot (one rope crossed with itself) and knots
+between two ropes or two control lines.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Annotated, Literal, Union
 
 import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
-from sandbox.model.strands import base_name
+from sandbox.model.strands import Strand, material_distance
 
 Site = Union[str, int]
 Vec3 = tuple[float, float, float]
@@ -80,36 +80,42 @@ def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0
     return x, out[0], out[1], xhat, zhat
 
 
-def closest_approach(xc: np.ndarray, xt: np.ndarray, gc: np.ndarray, gt: np.ndarray, exclude: float):
+def closest_approach(xc: np.ndarray, xt: np.ndarray, apart: np.ndarray | None = None):
     """Where two strands pass closest: ``(distance, index on C, index on T)``.
 
-    ``gc``, ``gt`` are the particles' global indices; pairs closer than
-    ``exclude`` along one rope (the same bend of a self-knot) are skipped.
+    ``apart``: ``(len(xc), len(xt))`` bool, the pairs that may count (None: all);
+    pairs of one rope or cloth that are the same bend are left out by it.
     """
     d = np.linalg.norm(xc[:, None, :] - xt[None, :, :], axis=2)
-    d = np.where(np.abs(gc[:, None] - gt[None, :]) > exclude, d, np.inf)
+    if apart is not None:
+        d = np.where(apart, d, np.inf)
     i, j = np.unravel_index(int(np.argmin(d)), d.shape)
     return float(d[i, j]), int(i), int(j)
 
 
-def _same_bend(c, t) -> float:
-    """Particles of one rope closer than this along it are the same bend, not a crossing.
+def _same_bend(c: Strand, t: Strand) -> float:
+    """Particles of one rope (or cloth) closer than this in the material are the same bend, not a crossing, m.
 
-    Half a turn of the strands' bounding tube (radius 1.1 (r_C + r_T)), in
-    rods, plus two.
+    Half a turn of the strands' bounding tube (radius 1.1 (r_C + r_T)) plus two rods.
     """
-    return np.pi * 1.1 * (c.radius + t.radius) / min(c.rod_length, t.rod_length) + 2
+    rod = min(c.rod_length, t.rod_length)
+    return (np.pi * 1.1 * (c.radius + t.radius) / rod + 2) * rod
 
 
-def strand_approach(x: np.ndarray, c, t):
-    """``closest_approach`` of strands ``c`` and ``t`` (``RopeRange``) in positions ``x``.
+def _apart(c: Strand, t: Strand, gc: np.ndarray, gt: np.ndarray) -> np.ndarray | None:
+    """Pairs of particles ``gc`` of ``c`` and ``gt`` of ``t`` that are not the same bend (None: all are)."""
+    m = material_distance(c, t, gc, gt)
+    return None if m is None else m > _same_bend(c, t)
 
-    Two strands of one rope skip pairs within half a turn of their bounding
-    tube (radius 1.1 (r_C + r_T)) of each other along the rope.
+
+def strand_approach(x: np.ndarray, c: Strand, t: Strand):
+    """``closest_approach`` of strands ``c`` and ``t`` in positions ``x``.
+
+    Two strands of one rope (or two lines of one cloth, which meet at its
+    centre) skip pairs within half a turn of their bounding tube (radius
+    1.1 (r_C + r_T)) of each other in the material.
     """
-    exclude = _same_bend(c, t) if base_name(c.name) == base_name(t.name) else -1.0
-    return closest_approach(x[c.start:c.end], x[t.start:t.end],
-                            np.arange(c.start, c.end), np.arange(t.start, t.end), exclude)
+    return closest_approach(x[c.idx], x[t.idx], _apart(c, t, c.idx, t.idx))
 
 
 def knot_exit(x: np.ndarray, strand, others, toward: int) -> int | None:
@@ -120,24 +126,24 @@ def knot_exit(x: np.ndarray, strand, others, toward: int) -> int | None:
     where the strand leaves a knot on its way to ``toward`` (its tip); None
     when it touches none of them.
     """
-    xs = x[strand.start:strand.end]
+    xs = x[strand.idx]
     near = np.zeros(len(xs), bool)
     for o in others:
-        d = np.linalg.norm(xs[:, None, :] - x[o.start:o.end][None, :, :], axis=2)
-        if base_name(o.name) == base_name(strand.name):
-            gi = np.arange(strand.start, strand.end)[:, None] - np.arange(o.start, o.end)[None, :]
-            d = np.where(np.abs(gi) > _same_bend(strand, o), d, np.inf)
+        d = np.linalg.norm(xs[:, None, :] - x[o.idx][None, :, :], axis=2)
+        apart = _apart(strand, o, strand.idx, o.idx)
+        if apart is not None:
+            d = np.where(apart, d, np.inf)
         near |= (d <= 1.5 * (strand.radius + o.radius)).any(axis=1)
     touching = np.flatnonzero(near)
     if not len(touching):
         return None
-    return strand.start + int(touching[np.argmin(np.abs(touching - (toward - strand.start)))])
+    return int(strand.idx[int(touching[np.argmin(np.abs(touching - strand.local(toward)))])])
 
 
-def _between(strand, base: np.ndarray, tip: np.ndarray):
-    """The part of ``strand`` (``RopeRange``) from its bottom particles to its tip's, both included."""
-    lo, hi = int(min(base.min(), tip.min())), int(max(base.max(), tip.max())) + 1
-    return dataclasses.replace(strand, start=max(lo, strand.start), end=min(hi, strand.end))
+def _between(strand: Strand, base: np.ndarray, tip: np.ndarray) -> Strand:
+    """The part of ``strand`` from its bottom particles to its tip's, both included."""
+    at = strand.along(np.concatenate([np.atleast_1d(base), np.atleast_1d(tip)]))
+    return strand.part(int(at.min()), int(at.max()))
 
 
 def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -147,16 +153,17 @@ def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
     return point if n <= radius else centre + v * (radius / n)
 
 
-def rope_holds(world, rope, exclude) -> list[tuple[int, np.ndarray]]:
-    """Particles of the whole rope under ``rope`` held by a hand now, but not in ``exclude``: (global index, command)."""
-    whole = world.rope(base_name(rope.name))
-    idx = np.arange(whole.start, whole.end)
+def rope_holds(world, strand: Strand, exclude) -> list[tuple[int, np.ndarray]]:
+    """Particles of the whole line under ``strand`` (its rope, or its cloth line) held by a hand now, but not in
+    ``exclude``: (position along the line, command)."""
+    idx = strand.line
     held = idx[world.control.is_driven(idx) & ~np.isin(idx, np.asarray(list(exclude), dtype=np.int64))]
-    return [(int(h), world.control.target([h])[0].astype(np.float64)) for h in held]
+    return [(int(strand.along(h)), world.control.target([h])[0].astype(np.float64)) for h in held]
 
 
 def within_holds(point: np.ndarray, particle: float, holds, rod_length: float, slack: float, now: np.ndarray):
-    """``point`` pulled back to where particle ``particle`` (a mean index, at ``now``) can go with its rope's holds kept.
+    """``point`` pulled back to where particle ``particle`` (a mean position along its line, at ``now``) can go with
+    its rope's holds kept (``rope_holds``).
 
     A rope particle k rods from a held particle can be at most ``slack`` k
     rod lengths from it, or as far as it is now where that is more (a rope
@@ -182,8 +189,8 @@ def within_holds(point: np.ndarray, particle: float, holds, rod_length: float, s
 
 
 class CrossingParams(Params):
-    active: str  # strand C
-    target: str  # strand T
+    active: str  # strand C: a rope, a run R[i0:i1] of one, or a cloth line F.line1-F.line4 / F.P..Q
+    target: str  # strand T (as active)
     active_tip: Site = "end"  # C's particle that is moved (held by the hand)
     target_tip: Site | None = "end"  # T's particle that is moved; None keeps T where it is
     # C's constrained bottom point (default: the end opposite its tip);
@@ -243,8 +250,8 @@ class Crossing(Maneuver):
 
     def start(self) -> None:
         p, w = self.params, self.world
-        self.c = w.rope(p.active)
-        self.t = w.rope(p.target)
+        self.c = w.strand(p.active)
+        self.t = w.strand(p.target)
         x = w.positions().astype(np.float64)
         tip_t_site = p.target_tip if p.target_tip is not None else "end"
         tip_c_idx = w.site_particles(p.active, p.active_tip)
@@ -264,8 +271,8 @@ class Crossing(Maneuver):
         self.c_part = _between(self.c, base_c, tip_c_idx)
         self.t_part = _between(self.t, base_t, tip_t_idx)
         # Rope length between each bottom and its tip (not the whole strand).
-        len_c = self.c.rod_length * abs(float(tip_c_idx.mean() - base_c.mean()))
-        len_t = self.t.rod_length * abs(float(tip_t_idx.mean() - base_t.mean()))
+        len_c = self.c.rod_length * abs(float(self.c.along(tip_c_idx).mean() - self.c.along(base_c).mean()))
+        len_t = self.t.rod_length * abs(float(self.t.along(tip_t_idx).mean() - self.t.along(base_t).mean()))
         bc, bt = x[base_c].mean(axis=0), x[base_t].mean(axis=0)
         spread = []  # (pinched bottom, from, to) carried apart by the hands
         if p.contact_spread is not None:
@@ -323,17 +330,17 @@ class Crossing(Maneuver):
         moving = {int(i) for idx, _, _ in self.moves for i in np.atleast_1d(idx)}
         for k, (idx, pos, ways) in enumerate(self.moves):
             idx = np.atleast_1d(idx)
-            rope = self.c if self.c.start <= int(idx[0]) < self.c.end else self.t
+            rope = self.c if self.c.has(int(idx[0])) else self.t
             holds = rope_holds(self.world, rope, moving)
             if not holds:
                 continue
-            body = base_name(rope.name)
-            first = self.world.rope(body).start  # holds are named by index along the rope, as sites are
+            body = rope.name if rope.cloth else rope.body  # holds are named by position along it, as sites are
+            at = float(rope.along(idx).mean())
             out = []
             for q in ways:
-                q, h = within_holds(q, float(idx.mean()), holds, rope.rod_length, self.params.slack, pos)
+                q, h = within_holds(q, at, holds, rope.rod_length, self.params.slack, pos)
                 if h is not None:
-                    self.limits.append((body, int(round(float(idx.mean()))) - first, h - first))
+                    self.limits.append((body, int(round(at)), h))
                 out.append(q)
             self.moves[k] = (idx, pos, out)
 
@@ -354,10 +361,11 @@ class Crossing(Maneuver):
         reach = 0.95 * p.contact_offset
         rise = 0.5 * float(np.sqrt(max(reach * reach - half * half, 0.0)))
         out = []
-        for side, contact, base, tip in ((-1.0, self.contacts[0], bases[0], tips[0]), (1.0, self.contacts[1], bases[1], tips[1])):
+        for side, contact, base, tip, st in ((-1.0, self.contacts[0], bases[0], tips[0], self.c),
+                                             (1.0, self.contacts[1], bases[1], tips[1], self.t)):
             goal = centre + side * half * axis + rise * _UP
             lifted = x[tip].mean(axis=0) + p.lift * _UP
-            tip_reach = p.slack * self.c.rod_length * abs(float(tip.mean() - base.mean()))
+            tip_reach = p.slack * st.rod_length * abs(float(st.along(tip).mean() - st.along(base).mean()))
             for _ in range(8):  # alternate projections onto the two balls
                 goal = _within(_within(goal, lifted, tip_reach), contact, reach)
             # Where the two balls do not meet (the rope is near taut), go only
@@ -392,9 +400,10 @@ class Crossing(Maneuver):
         # The knot may have slid past the strands' split while it was
         # tightened (an overhand creeps along its rope): look along the whole
         # rope, at every part of the ropes it could touch.
-        whole, other_whole = self.world.rope(base_name(strand.name)), self.world.rope(base_name(other.name))
-        parts = [whole] if other_whole.name == whole.name else [whole, other_whole]
-        tip = int(tip_idx.mean())
+        whole, other_whole = strand.whole(), other.whole()
+        same = len(whole.line) == len(other_whole.line) and np.array_equal(whole.line, other_whole.line)
+        parts = [whole] if same else [whole, other_whole]
+        tip = int(whole.at_along(int(whole.along(tip_idx).mean())))
         k = knot_exit(x, whole, parts, tip)
         if k is None:
             self.message = f"strand {body!r} does not touch {other.name!r}: no contact to cross above"
@@ -402,7 +411,8 @@ class Crossing(Maneuver):
         self.contacts.append(x[k].copy())
         if self.params.contact_offset > 0:
             step = int(round(self.params.contact_offset / strand.rod_length))
-            k = int(np.clip(k + np.sign(tip - k) * step, min(k, tip), max(k, tip)))
+            ak, at = whole.along(k), whole.along(tip)
+            k = int(whole.at_along(int(np.clip(ak + np.sign(at - ak) * step, min(ak, at), max(ak, at)))))
             self.world.control.drive([k], x[k][None, :])  # pinched where it is
         return np.array([k])
 
@@ -463,7 +473,7 @@ class Crossing(Maneuver):
     def approach(self, x: np.ndarray):
         """Closest approach of C and T now: ``(distance, point on C, point on T)``."""
         d, i, j = strand_approach(x, self.c_part, self.t_part)
-        return d, x[self.c_part.start + i], x[self.t_part.start + j]
+        return d, x[self.c_part.idx[i]], x[self.t_part.idx[j]]
 
     def metrics(self) -> dict[str, float]:
         return {"miss": self.approach(self.world.positions().astype(np.float64))[0]}

@@ -28,9 +28,9 @@ BACKOFF = 0.01
 """m each end of a moved pull gives back once the knot is tight."""
 
 class Pull(Params):
-    """One end pulled by Tightening: a site of a rope or strand and where it goes."""
+    """One end pulled by Tightening: a site of a rope, a strand or a cloth line, and where it goes."""
 
-    body: str
+    body: str  # a rope, a run R[i0:i1] of one, or a cloth line (F.line1, F.P..Q)
     site: Site = "end"
     direction: Vec3 | Literal["away"] = "away"  # "away": from the knot's centre
     toward: TargetLike | None = None  # pull toward this place instead (overrides ``direction``): a point, or an object's site with an offset
@@ -129,14 +129,13 @@ class Tightening(Maneuver):
         p, w = self.params, self.world
         x = w.positions().astype(np.float64)
         names = p.knot or [q.body for q in p.pulls]
-        self.strands = [w.rope(n) for n in dict.fromkeys(names)]
+        self.strands = [w.strand(n) for n in dict.fromkeys(names)]
         self.centre = self._knot_centre(x)
         # Every other held particle of the knot's ropes is let go, but for ``keep``.
         pulled = np.concatenate([w.site_particles(q.body, q.site) for q in p.pulls]
                                 + [w.site_particles(k.body, s) for k in p.keep for s in k.sites])
         for st in self.strands:
-            whole = w.rope(base_name(st.name))
-            idx = np.arange(whole.start, whole.end)
+            idx = st.line  # the whole rope, or the cloth line
             held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
             if len(held):
                 w.control.release(held)
@@ -224,14 +223,13 @@ class Tightening(Maneuver):
         parts = [x[v.particles] for v in rec.values() if len(np.atleast_1d(v.particles))]
         if parts:
             return np.vstack(parts).mean(axis=0)
-        return np.vstack([x[s.start:s.end] for s in self.strands]).mean(axis=0)
+        return np.vstack([x[s.idx] for s in self.strands]).mean(axis=0)
 
     def _tension(self, x: np.ndarray) -> tuple[float, float]:
         """Largest rod strain and capsule overlap / radius of the knot's ropes now."""
         strain = 0.0
         for s in self.strands:
-            seg = np.linalg.norm(np.diff(x[s.start:s.end], axis=0), axis=1)
-            strain = max(strain, float(np.abs(seg / s.rod_length - 1.0).max()))
+            strain = max(strain, float(np.abs(s.strain(x)).max()))
         overlap = 0.0
         rc = self.world.solver.ropecol
         if rc is not None:
@@ -239,8 +237,9 @@ class Tightening(Maneuver):
             seg_rope = self.world.data.segment_rope
             names = [r.name for r in self.world.data.ropes]
             for s in self.strands:
-                base = base_name(s.name)
-                g = gap[seg_rope == names.index(base)]
+                if s.cloth:  # cloth layers are kept apart by the cloth's self-collision, not capsules
+                    continue
+                g = gap[seg_rope == names.index(s.body)]
                 if len(g):
                     overlap = max(overlap, float(-g.min()) / s.radius)
         return strain, overlap

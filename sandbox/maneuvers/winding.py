@@ -24,7 +24,6 @@ import pydantic
 from sandbox.record import WindingRecord
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.knotting import rope_holds, within_holds
-from sandbox.model.strands import parse_strand
 
 
 STUCK_FRAMES = 15
@@ -44,8 +43,8 @@ the winding without whipping the tail."""
 
 
 class WindingParams(Params):
-    active: str  # rope C
-    target: str  # rope T
+    active: str  # strand C: a rope, a run R[i0:i1] of one, or a cloth line F.line1-F.line4 / F.P..Q
+    target: str  # strand T (as active)
     start: int | Literal["nearest"] = "nearest"  # C's particle at the crossing
     direction: Literal[1, -1] = 1  # wind C's particles after (+1) or before (-1) start
     theta: Annotated[float, pydantic.Field(gt=0, lt=90)] = 45.0  # degrees
@@ -93,16 +92,20 @@ class Winding(Maneuver):
         from sandbox.geometry.tube import tube_radius
 
         p, w = self.params, self.world
-        self.c = w.rope(p.active)
-        self.t = w.rope(p.target)
-        self.R = tube_radius(self.c.radius, self.t.radius, p.clearance)
-        xc = w.rope_positions(p.active)
-        xt = w.rope_positions(p.target)
+        self.c = w.strand(p.active)
+        self.t = w.strand(p.target)
+        x = w.positions()
+        xc = x[self.c.idx]
         if p.start == "nearest":
             self.i0 = self._crossing_particle(xc)
         else:
             self.i0 = int(p.start) % len(xc)
         self.cross = xc[self.i0].astype(np.float64)
+        self.rc, self.rt = self.c.radius, self.t.radius
+        if self.c.cloth or self.t.cloth:
+            self._cloth_tube(x.astype(np.float64))
+        self.R = tube_radius(self.rc, self.rt, p.clearance)
+        xt = x[self.t.idx]
         # X follows T: kept as an offset from T's particle nearest to it.
         self.j0 = int(np.argmin(np.linalg.norm(xt - self.cross, axis=1)))
         self.offset = self.cross - xt[self.j0]
@@ -128,8 +131,8 @@ class Winding(Maneuver):
         # side (e.g. its tip during a Crossing) lets go now, unless it carries
         # the tail (then only the tip stays held).
         after = np.arange(self.i0 + 1, len(xc)) if p.direction > 0 else np.arange(0, self.i0)
-        held = self.c.start + after[w.control.is_driven(self.c.start + after).astype(bool)] if len(after) else after
-        self.tip = self.c.start + (len(xc) - 1 if p.direction > 0 else 0)
+        held = self.c.idx[after[w.control.is_driven(self.c.idx[after]).astype(bool)]] if len(after) else after
+        self.tip = int(self.c.idx[len(xc) - 1 if p.direction > 0 else 0])
         if p.carry_tail > 0:
             held = held[held != self.tip]
             self.tip_pos = w.positions()[self.tip].astype(np.float64)
@@ -138,6 +141,35 @@ class Winding(Maneuver):
             w.control.release(held)
         self.x_hat = self.geodesic.x_hat
         w.record.windings[(p.active, p.target)] = WindingRecord(np.atleast_1d(self._particle(0)), self.x_hat)
+
+    def _cloth_tube(self, x: np.ndarray) -> None:
+        """For a cloth line, the bounding tube is that of the cloth gathered around it, and only over a short
+        length about the crossing (paper §5.2).
+
+        The length is what ``w0`` turns at ``theta`` advance along T on the
+        tube of the single layers, plus two tube diameters; T becomes its
+        part over that length, and each cloth strand's radius the bundle's
+        (``gathered_radius``) there.
+        """
+        from sandbox.geometry.tube import tube_radius
+        from sandbox.model.strands import gathered_radius
+
+        p, w = self.params, self.world
+        r0 = tube_radius(self.rc, self.rt, p.clearance)
+        length = 2.0 * np.pi * r0 * p.w0 / np.tan(np.radians(p.theta)) + 4.0 * r0
+        if self.t.cloth:
+            line = x[self.t.idx]
+            arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+            j = int(np.argmin(np.linalg.norm(line - self.cross, axis=1)))
+            keep = np.flatnonzero(np.abs(arc - arc[j]) <= 0.5 * length + self.t.rod_length)
+            first = int(self.t.along(self.t.idx[keep[0]]))
+            self.t = self.t.part(first, first + len(keep) - 1)
+        for name in ("c", "t"):
+            st = getattr(self, name)
+            if st.cloth:
+                r = gathered_radius(x, st, w.cloth(st.body), w.data.x0, self.cross, length)
+                setattr(self, "r" + name, r)
+        self.note = f"cloth tube over {length:.3f} m of {self.t.name!r}: radii {self.rc:.4f}, {self.rt:.4f} m"
 
     def _straighten(self, xt: np.ndarray) -> np.ndarray:
         """Hold T straight for ``straighten`` m around X_T, along T's direction there.
@@ -162,14 +194,13 @@ class Winding(Maneuver):
         d = xs[hi] - xs[lo]
         d /= max(float(np.linalg.norm(d)), 1e-12)
         rod = self.t.rod_length
-        t0 = self.t.start
-        held = np.flatnonzero(w.control.is_driven(t0 + np.arange(len(xt))))
+        held = np.flatnonzero(w.control.is_driven(self.t.idx))
 
         def reachable(i: int, h: int) -> bool:
             # Where the hand holds h (it may still be on its way there). One rod
             # from it, the rod between them must keep its length both ways: it
             # cannot take up a shortfall by bending.
-            gap = float(np.linalg.norm(xs[self.j0] + (i - self.j0) * rod * d - w.control.target([t0 + h])[0]))
+            gap = float(np.linalg.norm(xs[self.j0] + (i - self.j0) * rod * d - w.control.target([self.t.idx[h]])[0]))
             return gap <= REACH_SLACK * abs(i - h) * rod and (abs(i - h) > 1 or gap >= (2.0 - REACH_SLACK) * rod)
 
         below, above = held[held < lo], held[held > hi]
@@ -181,7 +212,7 @@ class Winding(Maneuver):
             return np.zeros(0, np.int64)
         run = np.arange(lo, hi + 1)
         line = xs[self.j0] + ((run - self.j0) * rod)[:, None] * d
-        idx = self.t.start + run
+        idx = self.t.idx[run]
         w.control.drive(idx, line)
         xt[run] = line
         return idx
@@ -217,7 +248,7 @@ class Winding(Maneuver):
         # T is followed on the scale of the tube: kinks where C presses on it
         # would otherwise make G (and the number of targets) flicker. The axis
         # moves by at most eps, so that targets never lie inside T.
-        eps = self.R - (self.c.radius + self.t.radius)
+        eps = self.R - (self.rc + self.rt)
         tube = Tube(smooth_axis(xt, 2.0 * self.R, max_shift=eps), self.R)
         self.tube = tube
         self.geodesic = trace_geodesic(tube, self.cross, theta=np.radians(p.theta), w0=p.w0,
@@ -241,14 +272,14 @@ class Winding(Maneuver):
         return pts
 
     def _particle(self, k: int) -> int:
-        return self.c.start + self.i0 + self.params.direction * k
+        return int(self.c.idx[self.i0 + self.params.direction * k])
 
     def update(self) -> Status:
         p, w = self.params, self.world
         self.ticks += 1
         if self.k >= self.n:
             return Status.DONE
-        xt = w.rope_positions(p.target).astype(np.float64)
+        xt = w.positions()[self.t.idx].astype(np.float64)
         moved = float(np.linalg.norm(xt - self.xt_traced, axis=1).max())
         if moved > 0.1 * self.R and self.k < self.n_turns:
             # T has moved: re-trace G on its current tube from the crossing carried along.
@@ -349,9 +380,9 @@ class Winding(Maneuver):
 
     def _record(self) -> None:
         """The winding record's particles: C's laid turns (not the exit)."""
-        last = self._particle(max(min(self.k, self.n_turns), 1) - 1)
-        self.world.record.windings[(self.params.active, self.params.target)].particles = np.arange(
-            min(self._particle(0), last), max(self._particle(0), last) + 1)
+        last = self.i0 + self.params.direction * (max(min(self.k, self.n_turns), 1) - 1)
+        self.world.record.windings[(self.params.active, self.params.target)].particles = self.c.idx[
+            min(self.i0, last):max(self.i0, last) + 1]
 
     def _slipped(self, xt: np.ndarray) -> int | None:
         """The first laid particle whose turns about T (Eq. 1, from the crossing) fall more than
@@ -386,11 +417,14 @@ class Winding(Maneuver):
         stretch it, so that rule has the last word.
         """
         w = self.world
-        holds = rope_holds(w, self.c, {idx - 1, idx, idx + 1})
-        held = [h for h in (idx - 1, idx + 1) if self.c.start <= h < self.c.end and w.control.is_driven([h])[0]]
+        a = int(self.c.along(idx))
+        near = [int(self.c.line[j]) for j in (a - 1, a + 1) if 0 <= j < len(self.c.line)]
+        holds = rope_holds(w, self.c, {idx, *near})
+        held = [h for h in near if self.c.has(h) and w.control.is_driven([h])[0]]
         x = w.positions() if holds or held else None  # one read-back of the particles, only when needed
         if holds:
-            pos, _ = within_holds(pos, float(idx), holds, self.c.rod_length, REACH_SLACK, x[idx].astype(np.float64))
+            pos, _ = within_holds(pos, float(self.c.along(idx)), holds, self.c.rod_length, REACH_SLACK,
+                                  x[idx].astype(np.float64))
         for h in held:
             xh = x[h].astype(np.float64)
             v = pos - xh
@@ -430,7 +464,7 @@ class Winding(Maneuver):
         # it would unwind the turns as T moves away.
         if self.k < self.n:
             self.world.control.release([self._particle(self.k)])
-        elif parse_strand(self.params.target)[0] in self.world.carried_ropes:
+        elif self.t.body in self.world.carried_ropes:
             self.world.attach(self._particle(self.n - 1), self.params.target)
 
     def metrics(self) -> dict[str, float]:

@@ -1,0 +1,156 @@
+"""Cloth control lines as strands: Crossing, Winding and Tightening take ``F.line1`` wherever they take a rope."""
+
+import functools
+import types
+
+import numpy as np
+import pytest
+
+import sandbox.maneuvers  # noqa: F401
+from sandbox.levels import LevelError, load_level_from_string
+from sandbox.model.strands import Strand, base_name, gathered_radius, material_distance, parse_cloth_line
+from tests.levelkit import ROOT
+from tests.levelkit import world_from_text as _world
+
+SCENE = """
+version: 1
+name: cloth_strands
+scene:
+  gravity: [0, -9.81, 0]
+  ground: {height: 0.0, friction: 0.6}
+  objects:
+    - {name: box, shape: box, params: {size: [0.16, 0.12, 0.16]}, position: [0, 0.0, 0], friction: 0.6}
+  cloths:
+    - {name: F, resolution: [25, 25], size: [0.6, 0.6], center: [0, 0.13, 0], mass: 0.1, self_collision: true,
+       bend_compliance: 0.5, friction: 0.6}
+sim: {fps: 60, substeps: 10, iterations: 1, frames: 400}
+fsm:
+  - {run: Anchoring, with: {body: F, sites: [center], object: box}}
+  - {run: Wait, with: {seconds: 0.5}}
+  - {run: Crossing, with: {active: "ACTIVE", target: "TARGET", active_tip: end, target_tip: end, height: 0.12,
+                           slack: 0.95}, timeout: 240}
+  - {run: Winding, with: {active: "ACTIVE", target: "TARGET", theta: 45, w0: 1, handedness: 1, along: -1}, timeout: 240}
+  - {run: Tightening, with: {pulls: [{body: "ACTIVE", site: end, direction: away}, {body: "TARGET", site: end,
+                                      direction: away}], knot: ["ACTIVE", "TARGET"], distance: 0.05, speed: 0.2}}
+success:
+  - {metric: fsm_state, equals: success}
+"""
+
+
+def _scene(active="F.line1", target="F.line3"):
+    return SCENE.replace("ACTIVE", active).replace("TARGET", target)
+
+
+def test_cloth_line_names_parse():
+    assert parse_cloth_line("F.line2") == ("F", "center", "B")
+    assert parse_cloth_line("F.[3, 4]..center") == ("F", [3, 4], "center")
+    assert parse_cloth_line("R[3:9]") is None and parse_cloth_line("R") is None
+    assert base_name("F.line1") == "F" and base_name("F.A..[2,3]") == "F" and base_name("R[2:]") == "R"
+    with pytest.raises(ValueError, match="line1"):
+        parse_cloth_line("F.line5")
+    with pytest.raises(ValueError, match="corner A-D"):
+        parse_cloth_line("F.E..center")
+
+
+@functools.cache
+def _flat_world():
+    return _world(_scene())
+
+
+def test_a_control_line_is_a_strand_from_the_centre_to_its_corner():
+    w = _flat_world()
+    cloth = w.cloth("F")
+    for k, corner in zip((1, 2, 3, 4), "ABCD"):
+        st = w.strand(f"F.line{k}")
+        np.testing.assert_array_equal(st.idx, cloth.control_line(k))
+        assert st.cloth and st.body == "F" and len(st) == 13
+        assert w.site_particles(f"F.line{k}", "start")[0] == cloth.site("center")
+        assert w.site_particles(f"F.line{k}", "end")[0] == cloth.site(corner)
+        # Diagonal lines: rest spacing sqrt(2) x the grid's 0.025 m.
+        assert st.rod_length == pytest.approx(0.025 * np.sqrt(2), rel=1e-5)
+    line = w.strand("F.[0,12]..[24,12]")  # the middle row, corner side to corner side
+    assert len(line) == 25 and line.rod_length == pytest.approx(0.025, rel=1e-5)
+    np.testing.assert_array_equal(w.site_particles("F.[0,12]..[24,12]", [10, 13]), cloth.index(np.arange(10, 13), 12))
+
+
+def test_two_lines_of_one_cloth_meet_at_its_centre_in_the_material():
+    """Their closest pair in the material is the shared centre (0 m); a rope and a cloth are not joined."""
+    w = _flat_world()
+    a, b = w.strand("F.line1"), w.strand("F.line3")
+    m = material_distance(a, b, a.idx, b.idx)
+    assert m[0, 0] == 0.0  # both start at the centre
+    assert m[-1, -1] == pytest.approx(0.6 * np.sqrt(2), rel=1e-5)  # corner A to corner C
+    part = a.part(3, 6)
+    assert len(part) == 4 and part.has(int(a.idx[3])) and not part.has(int(a.idx[7]))
+    assert part.local(int(a.idx[5])) == 2 and part.along(int(a.idx[5])) == 5
+    rope = types.SimpleNamespace(body="R")
+    assert material_distance(a, rope, a.idx, a.idx) is None
+
+
+def _strip(nx=41, nz=11, spacing=0.01, thickness=0.002):
+    """A flat strip's ClothRange-like grid, its rest positions and its middle row as a strand."""
+    from sandbox.model.builder import ClothRange
+
+    i, j = np.meshgrid(np.arange(nx), np.arange(nz))
+    x0 = np.stack([i.ravel() * spacing, 0 * i.ravel(), j.ravel() * spacing - (nz - 1) * spacing / 2], 1).astype(float)
+    cloth = ClothRange("S", 0, nx, nz, (spacing, spacing), thickness, np.zeros((0, 3), np.int32), (1, 1, 1),
+                       (1, 1, 1), False)
+    line = cloth.line_between([0, nz // 2], [nx - 1, nz // 2])
+    st = Strand("S.row", "S", line, line, np.full(nx - 1, spacing), 0.5 * thickness, cloth=True,
+                rest_pos=x0[line])
+    return cloth, x0, st
+
+
+def test_gathered_radius_of_a_flat_strip_and_of_one_rolled_around_its_line():
+    """Closed forms: flat, the 90th percentile of the particles' distances across the strip (+ half the
+    thickness); rolled into a cylinder of radius r about the line, r (+ half the thickness)."""
+    cloth, x0, st = _strip()
+    around = x0[st.idx[20]]
+    v = x0[:, 2]  # signed distance across the strip, m
+    # The middle row's band: within a quarter of its 0.4 m rest length, i.e. the whole 0.1 m wide strip;
+    # of those, the ones within 0.1 m of ``around`` along the line (21 columns).
+    flat = gathered_radius(x0, st, cloth, x0, around, length=0.2)
+    cols = np.abs(x0[:, 0] - around[0]) <= 0.1 + 1e-9
+    assert flat == pytest.approx(np.percentile(np.abs(v[cols]), 90) + 0.001, rel=1e-9)
+    r = 0.012
+    rolled = np.stack([x0[:, 0], r * np.cos(v / r), r * np.sin(v / r)], 1)
+    rolled[st.idx] = np.stack([x0[st.idx, 0], 0 * st.idx, 0 * st.idx], 1)  # the line itself is the roll's axis
+    assert gathered_radius(rolled, st, cloth, x0, around, length=0.2) == pytest.approx(r + 0.001, rel=1e-6)
+
+
+def test_a_bad_cloth_line_is_caught_when_the_level_loads():
+    for bad, said in (("G.line1", "unknown cloth 'G'"), ("F.[30,2]..center", "grid points [0, 24] x [0, 24]"),
+                      ("F.line7", "F.line1"), ("F.A..A", "runs from a point to itself")):
+        with pytest.raises(LevelError, match=said.replace("[", r"\[").replace("]", r"\]")):
+            load_level_from_string(_scene(active=bad), base_dir=ROOT / "levels")
+
+
+def test_crossing_winding_and_tightening_drive_only_the_control_lines():
+    """Two control lines of one cloth, crossed above the box, one wound around the other and pulled: the
+    maneuvers run to the end, and at every frame the hands hold only the anchored centre and particles of
+    the two lines. The Winding's tube is that of the cloth gathered around line 3 (``gathered_radius``),
+    over a short length about the crossing."""
+    w = _world(_scene())
+    cloth = w.cloth("F")
+    lines = set(cloth.control_line(1).tolist()) | set(cloth.control_line(3).tolist())
+    anchored = None
+    winding = None
+    state = None
+    while w.frame < w.level.sim.frames and state not in ("success", "failed"):
+        state = w.step().get("fsm_state")
+        m = w.fsm._maneuver
+        driven = set(np.flatnonzero(w.control.is_driven(np.arange(cloth.start, cloth.end))).tolist())
+        if m is not None and m.name == "Crossing" and anchored is None:
+            anchored = driven - lines
+        if anchored is not None:
+            assert driven - lines <= anchored, f"frame {w.frame}: {sorted(driven - lines - anchored)[:5]} held"
+        if m is not None and m.name == "Winding" and winding is None:
+            winding = m
+    assert state == "success"
+    assert anchored and winding is not None
+    x = w.positions().astype(np.float64)
+    assert winding.rt > winding.t.radius  # the flap around line 3 is far thicker than one layer
+    assert len(winding.t) < len(w.strand("F.line3"))  # the tube runs over a part of the line only
+    assert w.record.windings[("F.line1", "F.line3")].particles.size >= 2
+    assert np.isin(w.record.windings[("F.line1", "F.line3")].particles, cloth.control_line(1)).all()
+    assert np.isfinite(x).all()
