@@ -154,3 +154,19 @@ def test_crossing_winding_and_tightening_drive_only_the_control_lines():
     assert w.record.windings[("F.line1", "F.line3")].particles.size >= 2
     assert np.isin(w.record.windings[("F.line1", "F.line3")].particles, cloth.control_line(1)).all()
     assert np.isfinite(x).all()
+
+
+def test_a_crossing_bottom_can_be_a_place_the_strand_passes():
+    """``active_base`` given as a place (an object's site with an offset in its axes) is the strand's
+    particle nearest it: 5 cm from the box's top centre towards corner A along both axes, on the top
+    where the cloth lies flat, is control line 1's 2nd particle from the centre (diagonal steps of
+    2.5 cm x 2.5 cm)."""
+    text = _scene().replace("slack: 0.95}", "slack: 0.95, active_base: {object: box, site: top, offset: [-0.05, 0.0, -0.05]},\n"
+                                            "                           target_base: start}")
+    w = _world(text)
+    while w.fsm._maneuver is None or w.fsm._maneuver.name != "Crossing":
+        w.step()
+    m = w.fsm._maneuver
+    line = w.cloth("F").control_line(1)
+    assert m.c_part.idx[0] == line[2] and m.c_part.idx[-1] == line[-1]
+    assert m.t_part.idx[0] == w.cloth("F").site("center")

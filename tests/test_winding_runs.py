@@ -263,6 +263,16 @@ def test_winding_pinch_holds_the_crossing_until_the_end():
     assert not held2 and not m2.world.control.is_driven([m2._particle(0)])[0]
 
 
+def test_a_winding_without_the_rope_for_its_turns_fails_saying_so():
+    """Started at C's tip (no particle after the crossing) the turns cannot be laid: the winding fails
+    at once with the counts, rather than finishing with nothing wound."""
+    w = _shipped_world("rope_wind.yaml", {"fsm.1.with.start": -1})
+    while not w.fsm.finished and w.frame < 60:
+        w.step()
+    assert w.fsm.finished and w.fsm.state == "failure"
+    assert any("has 0 particles after the crossing; the winding needs" in str(e) for e in w.fsm.events)
+
+
 @pytest.mark.parametrize("clearance", [pytest.param(0.1, marks=pytest.mark.slow), 0.3])
 def test_winding_clearance_sets_the_tube_its_targets_lie_on(clearance):
     """The targets lie on the bounding tube R = (1 + clearance)(r_C + r_T) around T's axis (straight here)."""

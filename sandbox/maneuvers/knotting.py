@@ -18,6 +18,7 @@ import numpy as np
 import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
+from sandbox.maneuvers.basic import Target, TargetLike, resolve_target
 from sandbox.model.strands import Strand, material_distance
 
 Site = Union[str, int]
@@ -195,9 +196,11 @@ class CrossingParams(Params):
     target_tip: Site | None = "end"  # T's particle that is moved; None keeps T where it is
     # C's constrained bottom point (default: the end opposite its tip);
     # "contact": where the strand's rope leaves a knot tied before on its way
-    # to the tip (e.g. the first half of a granny knot).
-    active_base: Site | Literal["contact"] | None = None
-    target_base: Site | Literal["contact"] | None = None  # T's constrained bottom point (as ``active_base``)
+    # to the tip (e.g. the first half of a granny knot); a place (a point, or
+    # an object's site with an offset): the strand's particle nearest it
+    # (e.g. where a cloth's control line passes the top of the object it wraps).
+    active_base: Site | Literal["contact"] | TargetLike | None = None
+    target_base: Site | Literal["contact"] | TargetLike | None = None  # T's constrained bottom point (as ``active_base``)
     # m along each strand from its "contact" towards its tip where a hand
     # pinches it (held through the crossing): the bottoms of a second half
     # knot then sit apart, on either side of the first, as the strands leave it.
@@ -387,7 +390,8 @@ class Crossing(Maneuver):
         return out[0], out[1]
 
     def _base(self, x, strand, other, body, site, tip_site, tip_idx) -> np.ndarray | None:
-        """Global indices of a strand's bottom point: a site, its far end, or ``"contact"``.
+        """Global indices of a strand's bottom point: a site, its far end, the particle nearest a place, or
+        ``"contact"``.
 
         ``"contact"`` is where the strand's rope leaves the knot on its way to
         the tip (``knot_exit`` over the whole ropes): the top of a knot tied
@@ -395,6 +399,9 @@ class Crossing(Maneuver):
         """
         if site is None:
             return self.world.site_particles(body, _other_end(tip_site))
+        if isinstance(site, Target):
+            where = resolve_target(self.world, site)
+            return np.array([int(strand.idx[np.argmin(np.linalg.norm(x[strand.idx] - where, axis=1))])])
         if site != "contact":
             return self.world.site_particles(body, site)
         # The knot may have slid past the strands' split while it was

@@ -120,8 +120,9 @@ class Winding(Maneuver):
         self.short = -1  # the last particle (k) laid short of a target out of reach: turns up to it are not re-laid
         self.targets = self._targets(xt)
         n_left = (len(xc) - 1 - self.i0) if p.direction > 0 else self.i0
-        if self.n_turns - 1 > n_left:
-            self.message = (f"rope {p.active!r} has {n_left} particles after the crossing; "
+        self.too_short = self.n_turns - 1 > n_left  # the turns cannot be laid: the winding fails (``update``)
+        if self.too_short:
+            self.message = (f"strand {p.active!r} has {n_left} particles after the crossing; "
                             f"the winding needs {self.n_turns - 1}")
         self.targets = self.targets[: n_left + 1]  # an exit runs to C's tip at most
         self.n = len(self.targets)
@@ -277,6 +278,8 @@ class Winding(Maneuver):
     def update(self) -> Status:
         p, w = self.params, self.world
         self.ticks += 1
+        if self.too_short:
+            return Status.FAILED
         if self.k >= self.n:
             return Status.DONE
         xt = w.positions()[self.t.idx].astype(np.float64)
