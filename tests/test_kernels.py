@@ -378,8 +378,9 @@ def test_self_collision_lists_miss_no_contact():
     assert sc.overflows[None] > 10
 
 
-def _contact_pass_reference(x, w, seg, rope, rad, skip, mode, rods=None):
-    """One rope contact pass in float64 NumPy, brute force over every allowed pair (no slip: no friction).
+def _contact_pass_reference(x, w, seg, rope, rad, skip, rods=None):
+    """One rope contact pass (mass splitting) in float64 NumPy, brute force over every allowed pair (no slip:
+    no friction).
 
     ``rods``: each segment's rest length (m); a particle then moves at most
     THROW of its shortest one. Returns the positions after the pass, the
@@ -387,9 +388,9 @@ def _contact_pass_reference(x, w, seg, rope, rad, skip, mode, rods=None):
     lies at the contact distance within 1e-5 of it: whether that pair is a
     contact at all then turns on the last bits of float32 arithmetic (and
     Taichi's optimisations may order them differently), and a contact of
-    zero depth still counts in the averaging and the mass split.
+    zero depth still counts in the mass split.
     """
-    from sandbox.collision.ropecollision import RELAX, THROW
+    from sandbox.collision.ropecollision import THROW
 
     s_idx, t_idx = np.meshgrid(np.arange(len(seg)), np.arange(len(seg)), indexing="ij")
     s_idx, t_idx = s_idx.ravel(), t_idx.ravel()
@@ -410,18 +411,13 @@ def _contact_pass_reference(x, w, seg, rope, rad, skip, mode, rods=None):
     count = np.zeros(len(x))
     np.add.at(count, a0, wa0 > 0)
     np.add.at(count, a1, wa1 > 0)
-    if mode == "split":  # each particle weighs its mass over its count in every contact
-        wsum = (wa0 * (1 - u) * count[a0] + wa1 * u * count[a1]
-                + w[b0] * (1 - v) ** 2 * count[b0] + w[b1] * v**2 * count[b1])
+    # each particle weighs its mass over its count in every contact
+    wsum = (wa0 * (1 - u) * count[a0] + wa1 * u * count[a1]
+            + w[b0] * (1 - v) ** 2 * count[b0] + w[b1] * v**2 * count[b1])
     corr = ((target - dist) / dist / wsum)[:, None] * (c1 - c2)
-    if mode == "balanced":
-        k = np.maximum(np.maximum(count[a0], count[a1]), np.maximum(count[b0], count[b1]))
-        corr *= np.minimum(1.0, RELAX / np.maximum(k, 1.0))[:, None]
     acc = np.zeros_like(x)
     np.add.at(acc, a0, wa0[:, None] * corr * (wa0 > 0)[:, None])
     np.add.at(acc, a1, wa1[:, None] * corr * (wa1 > 0)[:, None])
-    if mode == "average":
-        acc /= np.maximum(count, 1.0)[:, None]
     if rods is not None:
         cap = np.full(len(x), np.inf)
         np.minimum.at(cap, seg[:, 0], THROW * rods)
@@ -432,17 +428,14 @@ def _contact_pass_reference(x, w, seg, rope, rad, skip, mode, rods=None):
     return x + acc, int(hit.sum()), fragile
 
 
-@pytest.mark.parametrize("mode", ["average", "balanced", "split"])
-def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mode):
+def test_rope_contact_pass_matches_reference_and_conserves_momentum():
     """One contact pass on a random tangle of three ropes of different masses, against a NumPy brute force.
 
-    Balanced and split contacts push each pair equally and oppositely: the momentum sum_i m_i dx_i
-    of the free particles stays zero. Averaged ones do not (the defect the other modes remove).
+    Split-mass contacts push each pair equally and oppositely: the momentum sum_i m_i dx_i of the free
+    particles stays zero.
     """
     text = ROPES_YAML.replace("radius: 0.015}", "radius: 0.015, mass: 0.02}").replace(
         "radius: 0.025}", "radius: 0.025, mass: 0.3}")
-    text = text.replace("sim: {fps: 60, substeps: 1, frames: 1}",
-                        f"sim: {{fps: 60, substeps: 1, frames: 1, rope_contacts: {mode}}}")
     sim = Sandbox(load_level_from_string(text, base_dir=ROOT), arch="cpu")
     world = sim.world
     data = world.data
@@ -466,7 +459,7 @@ def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mod
     skip = np.maximum(2, np.ceil(1.0 + 2.0 * np.array([r.radius for r in data.ropes]) / rod - 1e-9))
     rods = rod[data.segment_rope]
     want, contacts, fragile = _contact_pass_reference(x32.astype(np.float64), w, data.segments, data.segment_rope,
-                                                      rad, skip, mode, rods)
+                                                      rad, skip, rods)
     assert contacts > 50, "too few contacts for the test to mean anything"
     # rope c (rods twice its radius) touches itself at the contact distance at every bend
     assert fragile.mean() < 0.3, "too many borderline contacts for the test to mean anything"
@@ -480,10 +473,7 @@ def test_rope_contact_pass_matches_reference_and_balanced_conserves_momentum(mod
     dx = got - x32
     momentum = np.linalg.norm((dx / w[:, None]).sum(0))
     scale = (np.linalg.norm(dx, axis=1) / w).sum()
-    if mode in ("balanced", "split"):
-        assert momentum < 1e-4 * scale, (momentum, scale)
-    else:
-        assert momentum > 1e-2 * scale, (momentum, scale)
+    assert momentum < 1e-4 * scale, (momentum, scale)
 
 
 LEVER = """
@@ -494,21 +484,20 @@ scene:
   ropes:
     - {name: A, points: [[0, 0.5, 0], [0.1, 0.5, 0]], rod_length: 0.01, radius: 0.006, pins: [start, end]}
     - {name: B, points: [[X, 0.49, 0.007], [X, 0.51, 0.007]], rod_length: 0.01, radius: 0.006, pins: [0, 1, 2]}
-sim: {fps: 60, substeps: 1, frames: 1, rope_contacts: MODE}
+sim: {fps: 60, substeps: 1, frames: 1}
 fsm:
   - {run: Wait, with: {seconds: 1.0}}
 """
 
 
-@pytest.mark.parametrize("mode", ["average", "split"])
 @pytest.mark.parametrize("x_cross", [0.098, 0.099])
-def test_rope_contact_next_to_held_particles_moves_a_particle_at_most_a_rod(mode, x_cross):
+def test_rope_contact_next_to_held_particles_moves_a_particle_at_most_a_rod(x_cross):
     """A held rope B presses 5 mm into A's last segment, whose far end is held: pushing the contact out
     through the lever (1 - u) would move A's particle 9 by pen / (1 - u), 2.5 and 5 cm; one pass moves
     it one rod, away from B, and no held particle moves."""
     from sandbox.collision.ropecollision import THROW
 
-    w = _world(LEVER.replace("X", str(x_cross)).replace("MODE", mode))
+    w = _world(LEVER.replace("X", str(x_cross)))
     a = w.rope("A")
     x0 = w.positions().astype(np.float64)
     w.solver.begin_frame()

@@ -226,19 +226,6 @@ def test_adaptive_substeps_range_and_round_trip():
     assert load_level_from_string(dump_level(level)) == level
 
 
-@pytest.mark.parametrize("mode", ["balanced", "split"])
-def test_rope_contacts_choices_and_round_trip(mode):
-    """``sim.rope_contacts`` is average (default), balanced or split; anything else lists all three; it survives
-    dump and load."""
-    err = only_error(BASE.replace("macros:", "sim: {rope_contacts: mean}\nmacros:"))
-    assert err.path == "sim.rope_contacts"
-    assert all(m in err.message for m in ("average", "balanced", "split"))
-    assert load_level_from_string(BASE).sim.rope_contacts == "average"
-    level = load_level_from_string(BASE.replace("macros:", f"sim: {{rope_contacts: {mode}}}\nmacros:"))
-    assert level.sim.rope_contacts == mode
-    assert load_level_from_string(dump_level(level)) == level
-
-
 def test_unknown_maneuver_lists_registered_ones():
     """An unknown maneuver name is reported at its `run` line with the registered names."""
     text = BASE.replace("run: lv_wait\n      with: {ticks: 2}", "run: lv_jump\n      with: {ticks: 2}")

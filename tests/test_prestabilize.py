@@ -1,4 +1,4 @@
-"""Step 0 of the XPBD substep (``sim.prestabilize``): overlap the last substep left is pushed apart
+"""Step 0 of the XPBD substep, wherever ropes collide: overlap the last substep left is pushed apart
 before the prediction, without turning into velocity."""
 
 import numpy as np
@@ -17,14 +17,22 @@ scene:
   ropes:
     - {name: A, points: [[-0.1, 0.5, 0], [0.1, 0.5, 0]], rod_length: 0.01, radius: 0.006, bend_compliance: 1.0e-6}
     - {name: B, points: [[0, 0.5108, -0.1], [0, 0.5108, 0.1]], rod_length: 0.01, radius: 0.006, bend_compliance: 1.0e-6}
-sim: {fps: 60, substeps: 20, iterations: 4, rope_contacts: split, prestabilize: PRE}
+sim: {fps: 60, substeps: 20, iterations: 4}
 fsm:
   - {run: Wait, with: {seconds: 1.0}}
 """
 
 
+def without_step_zero(w):
+    """``w`` with its solver's step 0 left out (what it changes is measured against that)."""
+    w.solver.stages_zero = ()
+    return w
+
+
 def _after_one_frame(pre: bool):
-    w = world_from_text(CROSSED.replace("PRE", "true" if pre else "false"))
+    w = world_from_text(CROSSED)
+    if not pre:
+        without_step_zero(w)
     x0 = w.positions().astype(np.float64)
     w.step()
     x = w.positions().astype(np.float64)
@@ -57,14 +65,24 @@ def test_prestabilized_overlap_is_pushed_apart_without_speed(frames):
     assert strain.max() < 1e-3
 
 
-def test_prestabilize_is_off_unless_asked_and_must_be_a_boolean():
-    assert load_level_from_string(CROSSED.replace(", prestabilize: PRE", "")).sim.prestabilize is False
-    with pytest.raises(LevelError, match="prestabilize"):
-        load_level_from_string(CROSSED.replace("PRE", "'yes'"))
+@pytest.mark.parametrize("key", ["prestabilize: true", "rope_contacts: split"])
+def test_rope_contact_solving_is_engine_behaviour_not_an_option(key):
+    with pytest.raises(LevelError, match=key.split(":")[0]):
+        load_level_from_string(CROSSED.replace("iterations: 4}", f"iterations: 4, {key}}}"))
 
 
-def test_step_zero_runs_only_where_asked_and_profiles_as_it_steps(frames):
-    assert frames[False][0].solver.stages_zero == ()
+def test_step_zero_runs_wherever_ropes_collide_and_profiles_as_it_steps(frames):
+    cloth_only = world_from_text("""
+version: 1
+name: sheet
+scene:
+  cloths:
+    - {name: c, resolution: [5, 5], size: [0.1, 0.1], center: [0, 1, 0]}
+sim: {fps: 60, substeps: 20, iterations: 4}
+fsm:
+  - {run: Wait}
+""")
+    assert cloth_only.solver.ropecol is None and cloth_only.solver.stages_zero == ()  # nothing for it to do
     w = frames[True][0]
     assert w.solver.stages_zero  # settle, hash, rope contacts, chain step
     # One launch per pass (profile_substep) runs the same passes in the same order as the fused
@@ -85,7 +103,7 @@ def test_step_zero_runs_only_where_asked_and_profiles_as_it_steps(frames):
 def test_step_zero_alone_pushes_the_overlap_apart_and_leaves_the_velocities():
     """Step 0 on the state a substep starts from: one contact pass and one chain step, before the
     prediction. The 0.2 radius overlap is (mostly) gone and no velocity changed."""
-    w = world_from_text(CROSSED.replace("PRE", "true"))
+    w = world_from_text(CROSSED)
     s = w.solver
     s.begin_frame()
     before = s.ropecol.measure().min()

@@ -7,11 +7,11 @@ import taichi as ti
 
 from sandbox.levels import LevelError, load_level_from_string
 from tests.levelkit import world_from_text
-from tests.test_prestabilize import CROSSED
+from tests.test_prestabilize import CROSSED, without_step_zero
 
 
 def _after_one_frame():
-    w = world_from_text(CROSSED.replace("PRE", "false"))
+    w = without_step_zero(world_from_text(CROSSED))
     x0 = w.positions().astype(np.float64)
     w.step()
     return w, x0, w.positions().astype(np.float64), w.velocities().astype(np.float64), w.solver.ropecol.measure()
@@ -40,7 +40,7 @@ def test_rope_contacts_push_apart_without_speed(frame):
 
 def test_rope_inelastic_is_engine_behaviour_not_an_option():
     with pytest.raises(LevelError, match="rope_inelastic"):
-        load_level_from_string(CROSSED.replace("prestabilize: PRE", "rope_inelastic: true"))
+        load_level_from_string(CROSSED.replace("iterations: 4}", "iterations: 4, rope_inelastic: true}"))
 
 
 @ti.kernel

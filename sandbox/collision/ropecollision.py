@@ -6,25 +6,19 @@ segment gathers the XPBD correction of its own two end points from all its
 contacts (normal push plus Coulomb friction on the contact's slip).
 
 The pass is a Jacobi step, so a particle touched by several contacts must
-not take each one's full correction. Two ways (``sim.rope_contacts``):
-
-- ``average`` (the default): each particle divides what its one or two
-  segments gathered by its number of contacts. Where the two sides of a
-  contact have different counts, the pair's push is not equal and
-  opposite: its centre of mass moves, a force nothing in the scene exerts.
-  In a tight knot held still by its ends such pushes go round the knot's
-  loops and do net work (docs/benchmarks.md, "Held knots").
-- ``balanced``: the contacts are counted in a first gather, and each
-  contact's correction is scaled by min(1, RELAX / k), k the largest count
-  on its four particles, the same on both sides: every push is equal and
-  opposite (momentum-conserving), and particles add what they gathered.
-  Costs a second gather.
-- ``split``: mass splitting. The contacts are counted as for ``balanced``;
-  each contact is then solved as if each of its particles had only its
-  share of its mass (inverse mass times its count), and particles add what
-  they gathered. Every push is equal and opposite, a particle with one
-  contact takes the full projection, and a stack of contacts on one
-  particle closes as a whole instead of at RELAX / k of the rate.
+not take each one's full correction. It uses mass splitting: the contacts
+are counted in a first gather; each contact is then solved as if each of
+its particles had only its share of its mass (inverse mass times its
+count), and particles add what they gathered. Every push is equal and
+opposite (momentum-conserving), a particle with one contact takes the full
+projection, and a stack of contacts on one particle closes as a whole.
+Dividing each particle's gathered corrections by its count instead (a plain
+Jacobi average) pushes the two sides of a contact unequally where their
+counts differ: the pair's centre of mass moves, a force nothing in the
+scene exerts, and a tight knot held by its ends never comes to rest. Mass
+splitting was chosen over that, and over scaling each contact by
+min(1, 1.5 / k), by the standard sweep of every rope level
+(docs/benchmarks.md, "Rope contacts").
 
 A pass moves no particle by more than its shortest rod (``THROW``),
 which only a contact next to held particles asks for.
@@ -48,11 +42,6 @@ from sandbox.constraints.capsule import segment_closest
 # thrown several times its length in one pass); the next passes finish it.
 THROW = 1.0
 
-# Over-relaxation of the balanced contact pass: a contact whose particles
-# have at most k contacts each is scaled by min(1, RELAX / k). The plain
-# Jacobi step (1) left more overlap on wound ropes where it was chosen
-# (docs/benchmarks.md, "Held knots").
-RELAX = 1.5
 
 
 @ti.data_oriented
@@ -63,22 +52,15 @@ class RopeCollision:
         mid: (s,) vec3 f32, m, segment midpoints (hash keys).
         d0, d1: (s,) vec3 f32, m, corrections gathered for each end.
         c0, c1: (s,) i32, contacts gathered for each end.
-        count: (n,) f32, contacts on each particle (at least 1), this pass
-            (balanced and split only).
+        count: (n,) f32, contacts on each particle (at least 1), this pass.
         seg_a, seg_b: (n,) i32, segment starting / ending at each particle (-1).
         gap: (s,) f32, m, min over contacts of distance minus radii (metrics).
         max_move: (n,) f32, m, most one pass moves each particle (``THROW``
             of its shortest rod; 0 off the ropes).
     """
 
-    def __init__(self, model, state, w, contacts=None, mode: str = "average") -> None:
-        if mode not in ("average", "balanced", "split"):
-            raise ValueError(f"rope contact mode {mode!r}: use average, balanced or split")
+    def __init__(self, model, state, w, contacts=None) -> None:
         self.model = model
-        self.mode = mode
-        self.balanced = mode == "balanced"  # scale each contact by min(1, RELAX / k)
-        self.split = mode == "split"  # each particle weighs its mass / its count in each contact
-        self.counted = mode != "average"  # a counting gather first; particles add what they gather
         self.st = state
         self.w = w
         # ``contacts`` (a ``collision.contacts.Contacts``, optional): a pushed
@@ -110,7 +92,7 @@ class RopeCollision:
         self.c0 = ti.field(ti.i32, shape=s)
         self.c1 = ti.field(ti.i32, shape=s)
         self.gap = ti.field(ti.f32, shape=s)
-        self.count = ti.field(ti.f32, shape=model.n) if self.counted else None
+        self.count = ti.field(ti.f32, shape=model.n)
         seg_a = -np.ones(model.n, np.int32)
         seg_b = -np.ones(model.n, np.int32)
         seg_a[d.segments[:, 0]] = np.arange(s)
@@ -211,7 +193,7 @@ class RopeCollision:
                             kb0 = self._wn(b0, nrm) * (1.0 - v) ** 2
                             kb1 = self._wn(b1, nrm) * v * v
                             wsum = ka0 + ka1 + kb0 + kb1
-                            if ti.static(self.split and not count):
+                            if ti.static(not count):  # mass splitting: each particle's share of its mass
                                 wsum = (ka0 * self.count[a0] + ka1 * self.count[a1]
                                         + kb0 * self.count[b0] + kb1 * self.count[b1])
                             if ti.static(count) and wsum > 1e-12:
@@ -233,10 +215,6 @@ class RopeCollision:
                                 if lt > 1e-12:
                                     fric = -slip_t * ti.min(1.0, mu * pen / lt)
                                 corr = (pen * nrm + fric) / wsum
-                                if ti.static(self.balanced):
-                                    k = ti.max(ti.max(self.count[a0], self.count[a1]),
-                                               ti.max(self.count[b0], self.count[b1]))
-                                    corr *= ti.min(1.0, ti.static(RELAX) / k)
                                 if wa0 > 0.0:
                                     acc0 += (1.0 - u) * self._wapply(a0, corr)
                                     n0 += 1
@@ -275,8 +253,6 @@ class RopeCollision:
                 cnt += self.c1[sb]
             if cnt > 0:
                 dx = acc
-                if ti.static(not self.counted):
-                    dx = acc / ti.cast(cnt, ti.f32)
                 if ti.static(self.has_taut):
                     out = dx.dot(self.taut_n[i])
                     if out > self.room[i]:  # not out past taut (rope_chain.taut_f)
@@ -307,10 +283,9 @@ class RopeCollision:
 
     @ti.func
     def solve_f(self):
-        """One Jacobi pass of capsule collisions (balanced, split: count the contacts first)."""
-        if ti.static(self.counted):
-            self._gather(False, True)
-            self._count()
+        """One Jacobi pass of capsule collisions: count the contacts, then solve them with split masses."""
+        self._gather(False, True)
+        self._count()
         self._gather(False, False)
         self._apply()
 

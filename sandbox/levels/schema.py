@@ -109,7 +109,6 @@ Shape = Literal[
     "wine_bottle", "basket", "jeep", "statue", "mesh",
 ]
 Solver = Literal["xpbd", "projection"]
-RopeContacts = Literal["average", "balanced", "split"]
 Arch = Literal["auto", "cpu", "cuda", "vulkan", "metal"]
 Tier = Literal["accurate", "interactive"]
 Event = Literal["done", "failed", "timeout"]
@@ -369,15 +368,11 @@ class Sim(_Model):
     cloth takes ``CLOTH_CHAIN_SWEEPS`` (rows and columns disagree where the
     cloth crosses an object's edges and vertices) and a scene of ropes one
     (a rope's chain is solved exactly in one); 1 trades cloth stretch for
-    frame time. ``rope_contacts`` is how the Jacobi rope
-    contact pass shares corrections among a particle's contacts: ``average``
-    (per particle), ``balanced`` (per contact, equal and opposite) or ``split``
-    (mass splitting: equal and opposite at the full rate; see
-    ``sandbox/collision/ropecollision.py``). ``prestabilize`` runs one rope
-    contact pass and one chain step on the positions each substep starts
-    from, before its prediction, so that the overlap the last substep left
-    is pushed apart without adding speed (a tight knot held by its ends;
-    ``sandbox/solvers/xpbd.py``, step 0). ``cloth_joint`` is the number of
+    frame time. How rope contacts are solved is the engine's, not a
+    level's: mass splitting, inelastic, with the overlap a substep left
+    pushed apart before the next one's prediction
+    (``sandbox/collision/ropecollision.py``, ``sandbox/solvers/xpbd.py``
+    step 0). ``cloth_joint`` is the number of
     conjugate-gradient iterations of a Newton step that solves all rows and
     columns of each inextensible cloth together, after the chain sweeps of
     every iteration (0: none; see ``sandbox/solvers/cloth_joint.py``), on
@@ -418,8 +413,6 @@ class Sim(_Model):
     self_collision_every: between(int, 1, 16) = 1
     chain_sweeps: between(int, 1, 16) | None = None
     chain_tolerance: between(float, 0.0, 1.0) = 1e-3
-    rope_contacts: RopeContacts = "average"
-    prestabilize: Bool = False
     cloth_joint: between(int, 0, 64) = 0
     cloth_joint_every: between(int, 1, 200) = 1
     max_substeps: between(int, 1, 200) | None = None

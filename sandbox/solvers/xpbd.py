@@ -2,10 +2,10 @@
 
 Per substep (each pass O(n) in particles or constraints):
 
-0. optionally (``prestabilize``), one rope contact pass and one chain step
-   on the positions the substep starts from, before the prediction takes
-   them as x_prev: the overlap and rod error the last substep left are
-   removed without turning into velocity -- O(n)
+0. where ropes collide, one rope contact pass and one chain step on the
+   positions the substep starts from, before the prediction takes them as
+   x_prev: the overlap and rod error the last substep left are removed
+   without turning into velocity -- O(n)
 1. predict: gravity, pulling forces, damping, kinematic targets (Control) -- O(n)
 2. broad phase: spatial hash of rope segments -- O(n)
 3. distance constraints (rods Eq. 2, bending Eq. 3, cloth edges), graph
@@ -140,14 +140,11 @@ class SolverConfig:
         self_collision_every: cloth self-collision on every k-th substep (and the last).
         chain_sweeps: times the chain step runs per iteration (rows and columns re-solved where they disagree).
         chain_tolerance: relative rod error below which a chain is not re-solved.
-        rope_contacts: "average", "balanced" or "split", how the Jacobi rope contact
-            pass shares corrections (``ropecollision.py``).
         fuse_iterations: most iterations fused into one substep kernel (None:
             ``FUSE_ITERATIONS``); more run as several launches (the same passes,
             in the same order).
         cloth_joint: conjugate-gradient iterations of the joint cloth step (0: none).
         cloth_joint_every: the joint step on every k-th substep (and the last).
-        prestabilize: step 0, overlap a substep left pushed apart without speed.
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
@@ -156,11 +153,9 @@ class SolverConfig:
     self_collision_every: int = 1
     chain_sweeps: int = 1
     chain_tolerance: float = 1e-3
-    rope_contacts: str = "average"
     fuse_iterations: int | None = None
     cloth_joint: int = 0
     cloth_joint_every: int = 1
-    prestabilize: bool = False
 
     @classmethod
     def of_level(cls, scene, sim, iterations: int | None = None) -> "SolverConfig":
@@ -174,8 +169,8 @@ class SolverConfig:
             self_collision_every=sim.self_collision_every,
             chain_sweeps=sim.chain_sweeps or (CLOTH_CHAIN_SWEEPS if any(c.stretch_compliance == 0.0
                                                                        for c in scene.cloths) else 1),
-            chain_tolerance=sim.chain_tolerance, rope_contacts=sim.rope_contacts, cloth_joint=sim.cloth_joint,
-            cloth_joint_every=sim.cloth_joint_every, prestabilize=sim.prestabilize,
+            chain_tolerance=sim.chain_tolerance, cloth_joint=sim.cloth_joint,
+            cloth_joint_every=sim.cloth_joint_every,
         )
 
 
@@ -206,9 +201,8 @@ class XPBDSolver:
         cfg = self.config = config
         gravity, ground, iterations = cfg.gravity, cfg.ground, cfg.iterations
         self_collision_every, chain_sweeps, chain_tolerance = cfg.self_collision_every, cfg.chain_sweeps, cfg.chain_tolerance
-        rope_contacts, fuse_iterations = cfg.rope_contacts, cfg.fuse_iterations
+        fuse_iterations = cfg.fuse_iterations
         cloth_joint, cloth_joint_every = cfg.cloth_joint, cfg.cloth_joint_every
-        prestabilize = cfg.prestabilize
         self.model = model
         self.st = state
         self.ctl = control
@@ -242,14 +236,15 @@ class XPBDSolver:
         self.selfcol = ClothSelfCollision(model, state, self.w, cloth_start) if model.self_collision else None
         self.has_selfcol = self.selfcol is not None
         self.inext = ChainProjection(model, state, self.w, groups, contacts) if groups else None
-        self.ropecol = RopeCollision(model, state, self.w, contacts, mode=rope_contacts) if model.s >= 3 else None
+        self.ropecol = RopeCollision(model, state, self.w, contacts) if model.s >= 3 else None
         self.has_ropecol = self.ropecol is not None
         cloth_groups = cloth_chain_groups(model.data) if int(cloth_joint) > 0 else []
         self.joint = JointClothProjection(model, state, self.w, cloth_groups, contacts, peeled=self.inext.peeled,
                                           iterations=int(cloth_joint), slots=int(iterations)) if cloth_groups else None
         self.has_joint = self.joint is not None
-        self.prestabilize = bool(prestabilize) and self.ropecol is not None and self.inext is not None
-        # Step 0: what overlap and rod error the last substep left is removed
+        self.prestabilize = self.ropecol is not None and self.inext is not None
+        # Step 0 (wherever ropes collide; the standard sweep of every rope
+        # level: docs/benchmarks.md, "Rope contacts"): what overlap and rod error the last substep left is removed
         # before the prediction, which takes x_prev from the result: the
         # velocity the substep starts with is unchanged, so pushing ropes
         # apart where they already overlapped (a tight knot pulled into
