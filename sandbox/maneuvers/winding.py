@@ -148,16 +148,26 @@ class Winding(Maneuver):
         length about the crossing (paper §5.2).
 
         The length is what ``w0`` turns at ``theta`` advance along T on the
-        tube of the single layers, plus two tube diameters; T becomes its
-        part over that length, and each cloth strand's radius the bundle's
+        bundles' tube, plus two tube diameters (the bundles measured once
+        over the single layers' length first); T becomes its part over that
+        length, and each cloth strand's radius the bundle's
         (``gathered_radius``) there.
         """
         from sandbox.geometry.tube import tube_radius
         from sandbox.model.strands import gathered_radius
 
         p, w = self.params, self.world
-        r0 = tube_radius(self.rc, self.rt, p.clearance)
-        length = 2.0 * np.pi * r0 * p.w0 / np.tan(np.radians(p.theta)) + 4.0 * r0
+
+        def span(r_c: float, r_t: float) -> float:
+            big = tube_radius(r_c, r_t, p.clearance)
+            return 2.0 * np.pi * big * p.w0 / np.tan(np.radians(p.theta)) + 4.0 * big
+
+        def radii(length: float) -> tuple[float, float]:
+            return tuple(gathered_radius(x, st, w.cloth(st.body), w.data.x0, self.cross, length) if st.cloth
+                         else st.radius for st in (self.c, self.t))
+
+        # The bundle's radius sets the length the turns cover, which sets the bundle: once round.
+        length = span(*radii(span(self.rc, self.rt)))
         if self.t.cloth:
             line = x[self.t.idx]
             arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
@@ -165,11 +175,7 @@ class Winding(Maneuver):
             keep = np.flatnonzero(np.abs(arc - arc[j]) <= 0.5 * length + self.t.rod_length)
             first = int(self.t.along(self.t.idx[keep[0]]))
             self.t = self.t.part(first, first + len(keep) - 1)
-        for name in ("c", "t"):
-            st = getattr(self, name)
-            if st.cloth:
-                r = gathered_radius(x, st, w.cloth(st.body), w.data.x0, self.cross, length)
-                setattr(self, "r" + name, r)
+        self.rc, self.rt = radii(length)
         self.note = f"cloth tube over {length:.3f} m of {self.t.name!r}: radii {self.rc:.4f}, {self.rt:.4f} m"
 
     def _straighten(self, xt: np.ndarray) -> np.ndarray:
@@ -204,6 +210,12 @@ class Winding(Maneuver):
             gap = float(np.linalg.norm(xs[self.j0] + (i - self.j0) * rod * d - w.control.target([self.t.idx[h]])[0]))
             return gap <= REACH_SLACK * abs(i - h) * rod and (abs(i - h) > 1 or gap >= (2.0 - REACH_SLACK) * rod)
 
+        # A held particle inside the span bounds it: the run stops one particle short of it.
+        inside = held[(held >= lo) & (held <= hi) & (held != self.j0)]
+        if len(inside[inside > self.j0]):
+            hi = int(inside[inside > self.j0].min()) - 1
+        if len(inside[inside < self.j0]):
+            lo = int(inside[inside < self.j0].max()) + 1
         below, above = held[held < lo], held[held > hi]
         while lo < self.j0 and len(below) and not reachable(lo, int(below.max())):
             lo += 1
