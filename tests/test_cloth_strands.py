@@ -12,7 +12,7 @@ from sandbox.model.strands import Strand, base_name, gathered_radius, material_d
 from tests.levelkit import ROOT
 from tests.levelkit import world_from_text as _world
 
-SCENE = """
+HEAD = """
 version: 1
 name: cloth_strands
 scene:
@@ -21,7 +21,9 @@ scene:
   objects:
     - {name: box, shape: box, params: {size: [0.16, 0.12, 0.16]}, position: [0, 0.0, 0], friction: 0.6}
   cloths:
-    - {name: F, resolution: [25, 25], size: [0.6, 0.6], center: [0, 0.13, 0], mass: 0.1, self_collision: true,
+"""
+
+SCENE = HEAD + """    - {name: F, resolution: [25, 25], size: [0.6, 0.6], center: [0, 0.13, 0], mass: 0.1, self_collision: true,
        bend_compliance: 0.5, friction: 0.6}
 sim: {fps: 60, substeps: 10, iterations: 1, frames: 400}
 fsm:
@@ -125,16 +127,7 @@ def test_a_bad_cloth_line_is_caught_when_the_level_loads():
             load_level_from_string(_scene(active=bad), base_dir=ROOT / "levels")
 
 
-RIBBON = """
-version: 1
-name: ribbon
-scene:
-  gravity: [0, -9.81, 0]
-  ground: {height: 0.0, friction: 0.6}
-  objects:
-    - {name: box, shape: box, params: {size: [0.16, 0.12, 0.16]}, position: [0, 0.0, 0], friction: 0.6}
-  cloths:
-    - {name: F, resolution: [121, 3], size: [1.2, 0.02], center: [0, 0.13, 0], mass: 0.05, self_collision: true,
+RIBBON = HEAD.replace("name: cloth_strands", "name: ribbon") + """    - {name: F, resolution: [121, 3], size: [1.2, 0.02], center: [0, 0.13, 0], mass: 0.05, self_collision: true,
        bend_compliance: 0.5, friction: 0.6}
 sim: {fps: 60, substeps: 20, iterations: 2, frames: 400}
 fsm:
