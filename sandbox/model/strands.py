@@ -111,6 +111,9 @@ class Strand:
         pos = {int(g): i for i, g in enumerate(self.line)}
         object.__setattr__(self, "_pos", pos)
         object.__setattr__(self, "_first", pos[int(self.idx[0])])
+        # A rope's line is a run of consecutive indices: positions are differences, no lookups.
+        run = len(self.line) < 2 or bool(np.all(np.diff(self.line) == 1))
+        object.__setattr__(self, "_base", int(self.line[0]) if run else None)
 
     def __len__(self) -> int:
         return len(self.idx)
@@ -122,6 +125,10 @@ class Strand:
 
     def along(self, g):
         """Position (in particles) of global index/indices ``g`` along the whole line."""
+        if self._base is not None:
+            if np.ndim(g) == 0:
+                return int(g) - self._base
+            return np.asarray(g, dtype=np.int64) - self._base
         if np.ndim(g) == 0:
             return self._pos[int(g)]
         return np.array([self._pos[int(v)] for v in np.ravel(g)], dtype=np.int64).reshape(np.shape(g))
