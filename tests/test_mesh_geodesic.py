@@ -307,3 +307,14 @@ def test_turns_about_counts_signed_turns():
     helix = np.column_stack([np.cos(phi), 0.1 * phi, -np.sin(phi)])
     assert turns_about(helix) == pytest.approx(2.25)
     assert turns_about(helix[::-1]) == pytest.approx(-2.25)
+
+
+def test_polyline_distance_gives_the_arc_length_of_the_nearest_point():
+    """An L of two 1 m legs: a point beside the first leg at x = 0.3 is 0.3 m along it; one beside the
+    second leg at z = 0.6 is 1.6 m along; one past the far end is at the end (2 m)."""
+    line = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 1.0]])
+    pts = np.array([[0.3, 0.2, 0.0], [1.1, 0.0, 0.6], [1.0, 0.0, 1.5]])
+    d, arc = polyline_distance(pts, line, with_arc=True, chunk=2)
+    np.testing.assert_allclose(d, [0.2, 0.1, 0.5], atol=1e-12)
+    np.testing.assert_allclose(arc, [0.3, 1.6, 2.0], atol=1e-12)
+    np.testing.assert_array_equal(polyline_distance(pts, line), d)

@@ -415,30 +415,38 @@ def resample(line, spacing: float) -> np.ndarray:
     return np.stack([np.interp(t, s, line[:, i]) for i in range(line.shape[1])], axis=1)
 
 
-def polyline_distance(points, line, *, chunk: int = 4096) -> np.ndarray:
+def polyline_distance(points, line, *, chunk: int = 4096, with_arc: bool = False):
     """Distance from each point to a polyline.
 
     Args:
         points: (n, 3) or (3,) positions (m).
         line: (k, 3) polyline (m); a single point is allowed.
         chunk: Points processed per batch (bounds memory to chunk x k).
+        with_arc: also return the arc length along the polyline of each point's nearest point on it.
 
     Returns:
-        (n,) distances (m).
+        (n,) distances (m); with ``with_arc``, ``(distances, arc lengths)``.
     """
     P = np.atleast_2d(np.asarray(points, dtype=np.float64))
     L = np.atleast_2d(np.asarray(line, dtype=np.float64))
     if len(L) == 1:
-        return np.linalg.norm(P - L[0], axis=1)
+        d = np.linalg.norm(P - L[0], axis=1)
+        return (d, np.zeros(len(P))) if with_arc else d
     a, seg = L[:-1], np.diff(L, axis=0)
     seg2 = np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-300)
+    start = np.concatenate([[0.0], np.cumsum(np.sqrt(seg2))])[:-1]
     out = np.empty(len(P))
+    arc = np.empty(len(P))
     for i in range(0, len(P), chunk):
         rel = P[i : i + chunk, None, :] - a[None]
         t = np.clip(np.einsum("pkj,kj->pk", rel, seg) / seg2, 0.0, 1.0)
         diff = rel - t[..., None] * seg[None]
-        out[i : i + chunk] = np.sqrt(np.einsum("pkj,pkj->pk", diff, diff).min(axis=1))
-    return out
+        d2 = np.einsum("pkj,pkj->pk", diff, diff)
+        j = d2.argmin(axis=1)
+        rows = np.arange(len(j))
+        out[i : i + chunk] = np.sqrt(d2[rows, j])
+        arc[i : i + chunk] = start[j] + t[rows, j] * np.sqrt(seg2[j])
+    return (out, arc) if with_arc else out
 
 
 def turns_about(line, *, axis=(0.0, 1.0, 0.0), origin=(0.0, 0.0, 0.0)) -> float:

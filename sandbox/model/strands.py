@@ -215,53 +215,26 @@ def gathered_radius(x: np.ndarray, strand: Strand, cloth, x0: np.ndarray, around
     A flat, ungathered cloth gives the size of its flap; a tight roll, the roll's.
     O(n_cloth x k_line).
     """
+    from sandbox.geometry.mesh_geodesic import polyline_distance
+
     gi = np.arange(cloth.start, cloth.end)
-    rest_d = _distance_to_polyline(x0[gi], x0[strand.line])
+    rest_d = polyline_distance(x0[gi], x0[strand.line])
     others = [cloth.control_line(k) for k in (1, 2, 3, 4)]
     is_control = any(len(o) == len(strand.line) and np.array_equal(o, strand.line) for o in others)
     if is_control:
-        other_d = np.min([_distance_to_polyline(x0[gi], x0[o]) for o in others
+        other_d = np.min([polyline_distance(x0[gi], x0[o]) for o in others
                           if not (len(o) == len(strand.line) and np.array_equal(o, strand.line))], axis=0)
         mine = rest_d <= other_d + 1e-9
     else:
         mine = rest_d <= 0.25 * float(strand.rest.sum())
     pts = x[gi[mine]].astype(np.float64)
     line = x[strand.line].astype(np.float64)
-    d, s = _distance_to_polyline(pts, line, with_arc=True)
-    s0 = _distance_to_polyline(np.asarray(around, float)[None], line, with_arc=True)[1][0]
+    d, s = polyline_distance(pts, line, with_arc=True)
+    s0 = polyline_distance(np.asarray(around, float), line, with_arc=True)[1][0]
     near = np.abs(s - s0) <= 0.5 * length
     if not near.any():
         return strand.radius
     return float(np.percentile(d[near], 90.0)) + strand.radius
-
-
-_CHUNK = 2048
-"""Points measured against a polyline at once."""
-
-
-def _distance_to_polyline(p: np.ndarray, line: np.ndarray, with_arc: bool = False):
-    """Distance of points ``p`` (n, 3) to polyline ``line`` (m, 3); with ``with_arc`` also the arc length of the nearest point.
-
-    O(n m), in chunks of ``_CHUNK`` points (bounded temporaries).
-    """
-    if len(p) > _CHUNK:
-        parts = [_distance_to_polyline(p[i:i + _CHUNK], line, with_arc) for i in range(0, len(p), _CHUNK)]
-        if not with_arc:
-            return np.concatenate(parts)
-        return np.concatenate([q[0] for q in parts]), np.concatenate([q[1] for q in parts])
-    a, b = line[:-1], line[1:]
-    ab = b - a
-    ll = np.maximum((ab * ab).sum(-1), 1e-24)
-    u = np.clip(np.einsum("nmk,mk->nm", p[:, None, :] - a[None], ab) / ll[None], 0.0, 1.0)
-    q = a[None] + u[..., None] * ab[None]
-    d = np.linalg.norm(p[:, None, :] - q, axis=-1)
-    j = np.argmin(d, axis=1)
-    dist = d[np.arange(len(p)), j]
-    if not with_arc:
-        return dist
-    seg = np.sqrt(ll)
-    start = np.concatenate([[0.0], np.cumsum(seg)])[:-1]
-    return dist, start[j] + u[np.arange(len(p)), j] * seg[j]
 
 
 def strand_range(rope, ref: str):
