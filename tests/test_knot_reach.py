@@ -6,8 +6,11 @@ import pytest
 from sandbox.levels import LevelError, load_level_from_string
 
 import sandbox.maneuvers  # noqa: F401
-from tests.levelkit import world_from_text as _world
-from tests.test_knotting import ROOT, TOUCHING, TWO_ROPES
+from tests.levelkit import shipped_world, world_from_text as _world
+from tests.test_knotting import TOUCHING, TWO_ROPES
+
+# rope_wind with its crossing pinched for the whole winding (and the time that takes).
+PINCHED = {"fsm.1.with.pinch": True, "fsm.1.timeout": 300}
 
 
 TOUCHING_SLACK = (TOUCHING.replace("OFFSET", "0.1, contact_spread: 0.12")
@@ -86,9 +89,7 @@ def test_winding_pinch_keeps_the_next_particle_one_rod_from_the_crossing():
     """A pinched crossing particle stays where G was traced; as T moves G is traced again, and the next
     particle's command is put one rod from the held one rather than on the new G (which compressed that
     rod by ~5 % here before): over the whole winding that rod stays within 1 %."""
-    text = (ROOT / "levels" / "rope_wind.yaml").read_text()
-    text = text.replace("handedness: 1}, timeout: 150}", "handedness: 1, pinch: true}, timeout: 300}")
-    w = _world(text)
+    w = shipped_world("rope_wind.yaml", PINCHED)
     worst, m = 0.0, None
     while w.fsm.state != "2:Wait" and not w.fsm.finished:
         w.step()
@@ -112,9 +113,7 @@ def test_winding_keeps_the_driven_particle_within_reach_of_holds_further_along_t
     """With the crossing pinched, a particle k >= 2 rods past it is commanded at most 1.005 k rods from
     it (a command past that, here 0.3 m away, is pulled back along the line onto that reach); a command
     within reach, or with no hold on the rope but its own, is left alone."""
-    text = (ROOT / "levels" / "rope_wind.yaml").read_text()
-    text = text.replace("handedness: 1}, timeout: 150}", "handedness: 1, pinch: true}, timeout: 300}")
-    w = _world(text)
+    w = shipped_world("rope_wind.yaml", PINCHED)
     while not (w.fsm.state == "1:Winding" and w.fsm._maneuver.k >= 4):
         w.step()
     m = w.fsm._maneuver
@@ -258,10 +257,8 @@ def test_straightened_run_keeps_a_rod_to_a_held_particle_next_to_it_at_its_lengt
         assert run.max() == end, (gap, run)
 
 
-def _winding_world(extra: str = ""):
-    text = (ROOT / "levels" / "rope_wind.yaml").read_text()
-    text = text.replace("handedness: 1}, timeout: 150}", f"handedness: 1{extra}}}, timeout: 300}}")
-    w = _world(text)
+def _winding_world(**extra):
+    w = shipped_world("rope_wind.yaml", {"fsm.1.timeout": 300, **{f"fsm.1.with.{k}": v for k, v in extra.items()}})
     while not (w.fsm.state == "1:Winding" and w.fsm._maneuver.k >= 2):
         w.step()
     return w, w.fsm._maneuver
@@ -293,7 +290,7 @@ def test_winding_retrace_keeps_the_count_of_targets_on_g_within_one():
 def test_winding_exit_keeps_its_line_once_the_turns_are_laid_while_t_moves():
     """T moved by 2 cm: G and every target are traced again while turns are being laid; once they are
     (the particle to drive is on the exit), the exit line stays where it was."""
-    w, m = _winding_world(", exit: 0.05")
+    w, m = _winding_world(exit=0.05)
     read = w.positions
     t_idx = m.t.idx
 
