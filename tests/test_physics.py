@@ -484,25 +484,27 @@ def test_one_retry_is_enough():
 
 def test_unfused_iterations_step_like_the_fused_substep(monkeypatch):
     """Past FUSE_ITERATIONS a substep runs as several launches instead of one unrolled kernel (whose
-    compile time grows too fast: a rope scene at 8 iterations compiled for minutes). Forced here at
-    3 iterations on rope_hang (ropes, an object, the ground), in chunks of 2 (one chunk and a rest),
-    it gives the fused result: the same passes in the same order."""
+    compile time grows too fast: a rope scene at 8 iterations compiled for minutes). At 3 iterations
+    on rope_hang (ropes, an object, the ground), the whole substep in one kernel, in chunks of 2 (one
+    chunk and a rest) and of 1 (the shipped chunk) give the same result: the same passes in the same
+    order."""
     from sandbox.solvers import xpbd
 
     overrides = {"sim.iterations": 3}
     finals = []
-    for fuse in (xpbd.FUSE_ITERATIONS, 2):
+    for fuse, chunks in ((3, (1, 0)), (2, (1, 1)), (1, (3, 0))):
         monkeypatch.setattr(xpbd, "FUSE_ITERATIONS", fuse)
         with Sandbox.from_level(LEVELS / "rope_hang.yaml", arch="cpu", overrides=overrides) as sim:
-            assert sim.world.solver.fused == (fuse > 2)
-            assert sim.world.solver.fused or sim.world.solver.chunks == (1, 1)
+            assert sim.world.solver.fused == (fuse == 3)
+            assert sim.world.solver.chunks == chunks
             start = sim.world.positions().astype(np.float64)
             for _ in range(30):
                 sim.step()
             finals.append(sim.world.positions().astype(np.float64))
     moved = np.abs(finals[0] - start).max()
     assert moved > 0.01
-    np.testing.assert_allclose(finals[1], finals[0], rtol=0, atol=1e-6)
+    for other in finals[1:]:
+        np.testing.assert_allclose(other, finals[0], rtol=0, atol=1e-6)
 
 
 # ------------------------------------------------------------------ inelastic contacts

@@ -38,15 +38,15 @@ Steps 3-7b repeat ``iterations`` times. On the last substep of a frame,
 the medial sheet of a cloth whose lines are knotted (``medial.py``) then
 runs up to 3 passes, each followed by one more iteration with the particles
 it moved held. Only the passes the scene needs are
-compiled in (``self.stages``, fixed when the solver is built). A whole
-substep is one fused kernel: every pass is a ``@ti.func`` whose loops stay
-parallel; launching each pass on its own (``profile_substep``) gives the
-per-pass timings at the cost of one launch per pass. The fused kernel
-unrolls every iteration, and its compile time grows faster than its length
-(a rope scene at 8 iterations took minutes): past ``FUSE_ITERATIONS`` a
-substep is split into launches instead: the passes before the iterations,
-the iterations in chunks of up to ``FUSE_ITERATIONS``, and the passes
-after them.
+compiled in (``self.stages``, fixed when the solver is built). A substep
+runs as a few fused kernels: every pass is a ``@ti.func`` whose loops stay
+parallel, and a kernel runs several in order: the passes before the
+iterations, the iterations in chunks of ``FUSE_ITERATIONS``, and the passes
+after them (or the whole substep in one kernel where it has no more
+iterations than that). A fused kernel's compile time grows faster than its
+length (a rope scene with 8 iterations in one kernel took minutes).
+Launching each pass on its own (``profile_substep``) gives the per-pass
+timings at the cost of one launch per pass.
 """
 
 import dataclasses
@@ -68,8 +68,14 @@ from sandbox.solvers.rope_chain import ChainProjection, build_chains, has_rope_c
 
 PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP, \
     JOINT, SETTLE, FINAL_SWEEP = range(13)
-# Most iterations one fused substep kernel unrolls (the shipped levels use 1-4).
-FUSE_ITERATIONS = 4
+# Most iterations one fused kernel unrolls. One: a substep is a launch for the
+# passes before the iterations, one per iteration and one for the passes after
+# them. A kernel's compile time grows faster than its length, and the unrolled
+# passes compile once per copy: at 1 instead of 4, the rope levels' first frame
+# compiles in 6-7 s instead of 15-31 s (docs/benchmarks.md, "Start"), and
+# their frames take about as long (the kernels launch without a template
+# instance lookup, ``_run_k``).
+FUSE_ITERATIONS = 1
 # After the chain step that ends a substep (step 7c): up to FINAL_RESWEEPS
 # more Newton steps of the rope chains with a rod still off its length by
 # more than FINAL_TOLERANCE (relative). Each step moves particles along the
@@ -206,6 +212,7 @@ class XPBDSolver:
         self.model = model
         self.st = state
         self.ctl = control
+        self._fused_kernels: dict = {}  # stage tuple -> its kernel (``_run_k``)
         self.gravity = ti.math.vec3(*[float(g) for g in gravity])
         self.ground = ground
         self.objects = objects
@@ -466,11 +473,30 @@ class XPBDSolver:
             self._velocities(1.0 / dt)
 
     # ----------------------------------------------------------- kernels
-    @ti.kernel
-    def _run_k(self, stages: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
-        """The passes ``stages`` (a tuple of pass ids) fused into one kernel, one instance per tuple."""
-        for sid in ti.static(stages):
-            self._stage(sid, dt, frac, gh, gmu)
+    def _run_k(self, stages: tuple, dt: float, frac: float, gh: float, gmu: float) -> None:
+        """The passes ``stages`` (a tuple of pass ids) fused into one kernel, one kernel per tuple.
+
+        Each tuple gets a kernel of its own, made on first use, rather than one
+        kernel with the tuple as a template argument: Taichi then looks up no
+        template instance at each launch (85 -> 58 us a launch on this
+        machine, tens of launches a frame). The same passes compile to the
+        same code either way (bitwise the same frames).
+        """
+        kernel = self._fused_kernels.get(stages)
+        if kernel is None:
+            kernel = self._fused_kernels[stages] = self._fused_kernel(stages)
+        kernel(dt, frac, gh, gmu)
+
+    def _fused_kernel(self, stages: tuple):
+        """A kernel running the passes ``stages`` in order (``_stage``, each unrolled)."""
+        solver = self
+
+        @ti.kernel
+        def fused(dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
+            for sid in ti.static(stages):
+                solver._stage(sid, dt, frac, gh, gmu)
+
+        return fused
 
     @ti.kernel
     def _stage_k(self, sid: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
