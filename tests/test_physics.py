@@ -487,16 +487,20 @@ def test_unfused_iterations_step_like_the_fused_substep(monkeypatch):
     compile time grows too fast: a rope scene at 8 iterations compiled for minutes). At 3 iterations
     on rope_hang (ropes, an object, the ground), the whole substep in one kernel, in chunks of 2 (one
     chunk and a rest) and of 1 (the shipped chunk) give the same result: the same passes in the same
-    order."""
+    order. So does each launch cut into kernels of at most 2 passes (``MAX_PASSES``)."""
     from sandbox.solvers import xpbd
 
     overrides = {"sim.iterations": 3}
     finals = []
-    for fuse, chunks in ((3, (1, 0)), (2, (1, 1)), (1, (3, 0))):
+    for fuse, chunks, most in ((3, (1, 0), 99), (2, (1, 1), 99), (1, (3, 0), xpbd.MAX_PASSES), (3, (1, 0), 2)):
         monkeypatch.setattr(xpbd, "FUSE_ITERATIONS", fuse)
+        monkeypatch.setattr(xpbd, "MAX_PASSES", most)
         with Sandbox.from_level(LEVELS / "rope_hang.yaml", arch="cpu", overrides=overrides) as sim:
             assert sim.world.solver.fused == (fuse == 3)
             assert sim.world.solver.chunks == chunks
+            if most == 2:
+                stages = sim.world.solver.stages
+                assert len(sim.world.solver._split(stages)) == (len(stages) + 1) // 2
             start = sim.world.positions().astype(np.float64)
             for _ in range(30):
                 sim.step()

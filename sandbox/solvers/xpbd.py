@@ -76,6 +76,11 @@ PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACT
 # their frames take about as long (the kernels launch without a template
 # instance lookup, ``_run_k``).
 FUSE_ITERATIONS = 1
+# Most passes one kernel runs; a longer run of passes is launched as several
+# kernels in order. drape_box's substep (11 passes, one iteration) as 6 + 5:
+# its first frame compiles in 7.8 s instead of 8.8 s, frames unchanged (and
+# wrap_box_two's 90 -> 76 ms; docs/benchmarks.md, "Start").
+MAX_PASSES = 6
 # After the chain step that ends a substep (step 7c): up to FINAL_RESWEEPS
 # more Newton steps of the rope chains with a rod still off its length by
 # more than FINAL_TOLERANCE (relative). Each step moves particles along the
@@ -212,7 +217,8 @@ class XPBDSolver:
         self.model = model
         self.st = state
         self.ctl = control
-        self._fused_kernels: dict = {}  # stage tuple -> its kernel (``_run_k``)
+        self._fused_kernels: dict = {}  # run of passes -> its kernel (``_run_k``)
+        self._parts: dict = {}  # stage tuple -> its kernels, in order
         self.gravity = ti.math.vec3(*[float(g) for g in gravity])
         self.ground = ground
         self.objects = objects
@@ -474,18 +480,27 @@ class XPBDSolver:
 
     # ----------------------------------------------------------- kernels
     def _run_k(self, stages: tuple, dt: float, frac: float, gh: float, gmu: float) -> None:
-        """The passes ``stages`` (a tuple of pass ids) fused into one kernel, one kernel per tuple.
+        """The passes ``stages`` (a tuple of pass ids), fused into kernels of at most ``MAX_PASSES``.
 
-        Each tuple gets a kernel of its own, made on first use, rather than one
-        kernel with the tuple as a template argument: Taichi then looks up no
-        template instance at each launch (85 -> 58 us a launch on this
-        machine, tens of launches a frame). The same passes compile to the
-        same code either way (bitwise the same frames).
+        Each run of passes gets a kernel of its own, made on first use, rather
+        than one kernel with the tuple as a template argument: Taichi then
+        looks up no template instance at each launch (85 -> 58 us a launch on
+        this machine, tens of launches a frame). The same passes in the same
+        order, however launched: bitwise the same frames.
         """
-        kernel = self._fused_kernels.get(stages)
-        if kernel is None:
-            kernel = self._fused_kernels[stages] = self._fused_kernel(stages)
-        kernel(dt, frac, gh, gmu)
+        for part in self._parts.get(stages) or self._split(stages):
+            part(dt, frac, gh, gmu)
+
+    def _split(self, stages: tuple) -> list:
+        """The kernels of ``stages``: runs of at most ``MAX_PASSES`` passes, each kernel made once."""
+        parts = []
+        for i in range(0, len(stages), MAX_PASSES):
+            run = stages[i:i + MAX_PASSES]
+            if run not in self._fused_kernels:
+                self._fused_kernels[run] = self._fused_kernel(run)
+            parts.append(self._fused_kernels[run])
+        self._parts[stages] = parts
+        return parts
 
     def _fused_kernel(self, stages: tuple):
         """A kernel running the passes ``stages`` in order (``_stage``, each unrolled)."""
