@@ -488,7 +488,10 @@ class XPBDSolver:
         this machine, tens of launches a frame). The same passes in the same
         order, however launched: bitwise the same frames.
         """
-        for part in self._parts.get(stages) or self._split(stages):
+        parts = self._parts.get(stages)
+        if parts is None:
+            parts = self._split(stages)
+        for part in parts:
             part(dt, frac, gh, gmu)
 
     def _split(self, stages: tuple) -> list:
@@ -512,10 +515,6 @@ class XPBDSolver:
                 solver._stage(sid, dt, frac, gh, gmu)
 
         return fused
-
-    @ti.kernel
-    def _stage_k(self, sid: ti.template(), dt: ti.f32, frac: ti.f32, gh: ti.f32, gmu: ti.f32):
-        self._stage(sid, dt, frac, gh, gmu)
 
     @ti.kernel
     def _begin_frame_k(self):
@@ -628,7 +627,7 @@ class XPBDSolver:
         """``stages``, one launch per pass, each timed into ``self.timings`` (ms)."""
         for sid in stages:
             t0 = time.perf_counter()
-            self._stage_k(sid, dt, frac, gh, gmu)
+            self._run_k((sid,), dt, frac, gh, gmu)
             ti.sync()
             name = STAGE_NAMES[sid]
             self.timings[name] = self.timings.get(name, 0.0) + 1e3 * (time.perf_counter() - t0)
@@ -657,7 +656,7 @@ class XPBDSolver:
         if not self.has_joint or skips[1]:
             return
         t0 = time.perf_counter()
-        self.joint.settle(lambda: self._stage_k(JOINT, dt, frac, gh, gmu))
+        self.joint.settle(lambda: self._run_k((JOINT,), dt, frac, gh, gmu))
         ti.sync()
         name = STAGE_NAMES[JOINT]
         self.timings[name] = self.timings.get(name, 0.0) + 1e3 * (time.perf_counter() - t0)
