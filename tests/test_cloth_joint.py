@@ -137,6 +137,25 @@ def test_joint_step_matches_the_scipy_reference():
     assert np.abs(exact - expect).max() > 1e-5
 
 
+def test_the_solver_launches_the_step_as_begin_one_cg_kernel_per_iteration_and_end():
+    """The solver runs the joint pass as its begin, one kernel launched once per CG iteration, and its
+    end: the same kernel object each time (compiled once, not unrolled), and the same step as
+    ``joint()`` and as the SciPy reference."""
+    from sandbox.solvers import xpbd
+
+    w = _sheet(3)
+    s = w.solver
+    runs = s._runs((xpbd.JOINT,))
+    assert runs == [(xpbd.JOINT_BEGIN,)] + [(xpbd.JOINT_CG,)] * 3 + [(xpbd.JOINT_END,)]
+    parts = s._split((xpbd.JOINT,))
+    assert parts[1] is parts[2] is parts[3] and len({id(p) for p in parts}) == 3
+    x, inv_mass, rest, touching, normal = _prepare(w, np.random.default_rng(7))
+    s._run_k((xpbd.JOINT,), 1.0 / 600, 1.0, -10.0, 0.0)
+    got = w.positions().astype(np.float64)
+    expect = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=3)[0]
+    np.testing.assert_allclose(got, expect, atol=3e-6)
+
+
 def test_joint_step_converges_to_the_exact_newton_step():
     """More PCG iterations approach the exact Newton step of all rows and columns together (here 16
     leave 0.4 % of the step); the pin stays and particles in contact move only along their surface."""

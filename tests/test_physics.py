@@ -500,7 +500,10 @@ def test_unfused_iterations_step_like_the_fused_substep(monkeypatch):
             assert sim.world.solver.chunks == chunks
             if most == 2:
                 stages = sim.world.solver.stages
-                assert len(sim.world.solver._split(stages)) == (len(stages) + 1) // 2
+                runs = sim.world.solver._runs(stages)
+                assert sum(runs, ()) == stages
+                assert all(len(r) <= 2 for r in runs)
+                assert len(runs) < len(stages)  # passes are still fused
             start = sim.world.positions().astype(np.float64)
             for _ in range(30):
                 sim.step()
@@ -509,6 +512,23 @@ def test_unfused_iterations_step_like_the_fused_substep(monkeypatch):
     assert moved > 0.01
     for other in finals[1:]:
         np.testing.assert_allclose(other, finals[0], rtol=0, atol=1e-6)
+
+
+def test_a_block_of_passes_repeated_back_to_back_is_one_kernel_launched_per_repeat():
+    """(contacts, re-sweep) twice is one kernel launched twice, not two copies in one kernel; the passes
+    around it fuse as before, in the same order."""
+    from sandbox.solvers import xpbd as x
+
+    with Sandbox.from_level(LEVELS / "rope_hang.yaml", arch="cpu") as sim:
+        s = sim.world.solver
+        stages = (x.PREDICT, x.CONTACTS, x.RESWEEP, x.CONTACTS, x.RESWEEP, x.CONTACTS, x.VELOCITIES)
+        assert s._runs(stages) == [(x.PREDICT,), (x.CONTACTS, x.RESWEEP), (x.CONTACTS, x.RESWEEP),
+                                   (x.CONTACTS, x.VELOCITIES)]
+        assert s._runs((x.ROPE_INEXT,) + (x.FINAL_SWEEP,) * 3 + (x.VELOCITIES,)) == \
+            [(x.ROPE_INEXT,)] + [(x.FINAL_SWEEP,)] * 3 + [(x.VELOCITIES,)]
+        parts = s._split(stages)
+        assert parts[1] is parts[2]
+        assert s._runs((x.PREDICT, x.CONSTRAINTS, x.CONTACTS)) == [(x.PREDICT, x.CONSTRAINTS, x.CONTACTS)]
 
 
 # ------------------------------------------------------------------ inelastic contacts
