@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from sandbox.geometry.winding import gauss_linking, winding_integral, writhe
+from sandbox.geometry.winding import gauss_linking, winding_integral, wound_turns, writhe
 
 
 def circle(centre, e1, e2, n=64, radius=1.0):
@@ -85,6 +85,22 @@ def test_winding_of_helix_around_straight_axis_counts_turns(turns):
     assert winding_integral(helix[::-1], axis, X) == pytest.approx(turns, abs=1e-9)
     left = helix * [1, 1, -1]
     assert winding_integral(left, axis, X) == pytest.approx(-turns, abs=1e-9)
+
+
+def test_wound_turns_leave_out_ends_lifted_off_t():
+    """One turn laid on T at radius 0.3 counts one, with a lead-in and a tail lifted off T on either side
+    (each a quarter turn round, 1 m out), which Eq. 1 over the whole curve would count; a curve that
+    no longer touches T is wound 0 times."""
+    u = np.linspace(0.0, 2.0 * np.pi, 101)
+    helix = np.stack([0.05 * u, 0.3 * np.cos(u), 0.3 * np.sin(u)], axis=1)
+    lead = np.array([[-0.05, 0.0, -1.3]])  # a quarter turn before the helix starts, off T
+    tail = np.array([[helix[-1, 0] + 0.05, 0.0, 1.3]])  # a quarter turn after it ends
+    curve = np.vstack([lead, helix, tail])
+    axis = np.stack([np.linspace(-1.0, 2.0, 7), np.zeros(7), np.zeros(7)], axis=1)
+    assert winding_integral(curve, axis, X) == pytest.approx(1.5, abs=1e-9)
+    assert wound_turns(curve, axis, X, touch=0.31) == pytest.approx(1.0, abs=1e-9)
+    assert wound_turns(helix, axis, X, touch=0.31) == pytest.approx(1.0, abs=1e-9)
+    assert wound_turns(curve + [0.0, 2.0, 0.0], axis, X, touch=0.31) == 0.0
 
 
 def test_winding_follows_a_tilted_wavy_axis():

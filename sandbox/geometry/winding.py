@@ -26,6 +26,7 @@ __all__ = [
     "segment_pair_solid_angles",
     "winding_about_axis",
     "winding_integral",
+    "wound_turns",
     "writhe",
 ]
 
@@ -252,3 +253,29 @@ def winding_about_axis(
     sign = 1.0 if progress >= 0.0 or not signed else -1.0
     w = sign * (ang - ang[0]) / (2.0 * np.pi)
     return w if cumulative else float(w[-1])
+
+
+def wound_turns(curve: np.ndarray, axis_curve: np.ndarray, x_hat: np.ndarray, touch: float) -> float:
+    """Turns of the wound part of G around T: Eq. 1 over G from its first to its last point that touches T.
+
+    A point touches T within ``touch`` of T's polyline (m; for ropes, r_C + r_T plus a contact band).
+    The ends of a laid winding that a pull lifts off T (a lead-in swung round by T's motion) are
+    not wound around it: counted, they add the angle of where they point, up to a fifth of a turn
+    in ``rope_wind_moving``. Fewer than two touching points: 0 (nothing is wound).
+
+    Args:
+        curve: ``(n, 3)`` points of G (the laid turns), m.
+        axis_curve: ``(m, 3)`` points of T, m.
+        x_hat: winding direction, as ``winding_integral``.
+        touch: the largest distance from T's polyline of a point that touches it, m.
+
+    Returns:
+        Number of turns, >= 0.
+    """
+    from sandbox.geometry.mesh_geodesic import polyline_distance
+
+    g = np.asarray(curve, dtype=np.float64)
+    on = np.flatnonzero(polyline_distance(g, axis_curve) <= touch)
+    if len(on) < 2:
+        return 0.0
+    return abs(float(winding_integral(g[on[0]:on[-1] + 1], axis_curve, x_hat)))

@@ -82,8 +82,9 @@ def _rope_min_gap_ratio(world, of) -> float:
 
 
 def _winding_number(world, of) -> float:
-    """Eq. 1 winding of the wound part of rope C around rope T (``of: [C, T]``)."""
-    from sandbox.geometry.winding import winding_integral
+    """Eq. 1 winding of the wound part of rope C around rope T (``of: [C, T]``): the laid turns from
+    the first to the last particle within one radius of C of touching T (``wound_turns``)."""
+    from sandbox.geometry.winding import wound_turns
 
     names = _bodies(world, of)
     if len(names) != 2:
@@ -94,7 +95,8 @@ def _winding_number(world, of) -> float:
     x = world.positions()
     c = x[rec.particles].astype(np.float64)
     t = world.rope_positions(names[1]).astype(np.float64)
-    return abs(float(winding_integral(c, t, rec.x_hat)))
+    rc, rt = world.strand(names[0]).radius, world.strand(names[1]).radius
+    return wound_turns(c, t, rec.x_hat, touch=rt + 2.0 * rc)
 
 
 def _linking_number(world, of) -> float:
@@ -235,7 +237,7 @@ METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "max_speed": ("fastest particle at the end (m/s): small when settled", _max_speed),
     "min_height": ("lowest particle of the bodies at the end (m)", _min_height),
     "fsm_state": ("the FSM's state at the end (success, failure or a state name)", _fsm_state),
-    "winding_number": ("turns of the wound part of rope C around rope T (paper Eq. 1), of: [C, T]", _winding_number),
+    "winding_number": ("turns of the wound part of rope C around rope T (paper Eq. 1; the laid turns that touch T), of: [C, T]", _winding_number),
     "linking_number": ("Gauss linking number of two ropes closed far away, of: [A, B]", _linking_number),
     "knot": ("knot tied in a rope closed far away (unknot, trefoil_left/right, figure_eight, granny_left/right, "
              "square, unknown), of: R; or between two ropes joined at their first particles, of: [A, B]", _knot),
