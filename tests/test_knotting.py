@@ -198,34 +198,6 @@ def test_crossing_two_ropes_makes_a_crossing_of_the_asked_sign(sign):
     assert gap.min() > -0.1 * 0.008
 
 
-def test_crossing_replans_tips_towards_each_other_when_the_strands_stay_apart():
-    """Tips arrived with the strands passing 10 cm apart: each tip is carried on towards the other strand,
-    across the line where they pass closest (by half the distance still to close, scaled by the lever
-    from its bottom) and never past its rope's reach; strands already close are left as they are."""
-    w = _world(TWO_ROPES.replace("SIGN", "1"))
-    for _ in range(3):
-        w.step()
-    cr = w.fsm.maneuver
-    assert cr.name == "Crossing"
-    x = w.positions().astype(np.float64)
-    at_c, at_t = np.array([-0.05, 0.45, 0.0]), np.array([0.05, 0.45, 0.0])
-    tips = [cr.moves[k][1].copy() for k in range(2)]
-    total = cr.total
-    assert cr._replan(x, 0.1, at_c, at_t)
-    want = 0.75 * (cr.gap + 0.016)
-    for k, (side, at) in enumerate(((1, at_c), (-1, at_t))):
-        base, reach, s = cr.tip_plans[k]
-        assert s == side
-        (goal,) = cr.moves[k][2]
-        move = goal - tips[k]
-        lever = min(max(np.linalg.norm(at - base) / np.linalg.norm(tips[k] - base), 0.25), 1.0)
-        assert move[0] * side > 0.0  # towards the other strand
-        assert np.linalg.norm(move) <= 0.5 * (0.1 - want) / lever + 1e-9
-        assert np.linalg.norm(goal - base) <= max(reach, np.linalg.norm(tips[k] - base)) + 1e-9
-    assert cr.replans == 1 and cr.total > total and "carried on" in cr.note
-    assert not cr._replan(x, 0.5 * want, at_c, at_t)
-
-
 def _with_box(text: str, centre, size: float) -> str:
     box = (f"  ground: {{height: 0.0}}\n  objects:\n    - {{name: box, shape: box, params: {{size: [{size}, {size}, {size}]}}, "
            f"position: [{centre[0]:.6f}, {centre[1]:.6f}, {centre[2]:.6f}]}}\n  ropes:")

@@ -189,12 +189,6 @@ def within_holds(point: np.ndarray, particle: float, holds, rod_length: float, s
     return q, limit
 
 
-MAX_REPLANS = 4
-"""Times a Crossing carries its tips on towards each other when they arrived with the strands still apart."""
-REPLAN_FRAMES = 30
-"""Frames the strands must stop closing on each other, the tips arrived, before a Crossing replans."""
-
-
 class CrossingParams(Params):
     active: str  # strand C: a rope, a run R[i0:i1] of one, or a cloth line F.line1-F.line4 / F.P..Q
     target: str  # strand T (as active)
@@ -303,10 +297,6 @@ class Crossing(Maneuver):
             plans.append((p.target, p.target_tip, tip_t, -p.sign))
         bases = (bc, bt)
         reach = (p.slack * len_c, p.slack * len_t)
-        # For a replan (``_replan``): each tip's bottom, reach and side (+1: C's tip, -1: T's).
-        self.tip_plans = [(bases[k], reach[k], 1 if k == 0 else -1) for k in range(len(plans))]
-        self.replans = 0
-        self.best_near, self.still = np.inf, 0  # closest the strands came since the tips arrived; frames since
         for k, (body, site, goal, s) in enumerate(plans):
             idx = w.site_particles(body, site)
             pos = x[idx].mean(axis=0)
@@ -481,16 +471,6 @@ class Crossing(Maneuver):
             w.record.crossings[(p.active, p.target)] = 0.5 * (at_c + at_t)
             self.progress = 1.0
             return Status.DONE
-        # The strands may still be closing (swinging in after the tips stopped): replan only once they
-        # have stopped closing for REPLAN_FRAMES.
-        if near < self.best_near - 0.1 * self.gap:
-            self.best_near, self.still = near, 0
-        else:
-            self.still += 1
-        if (not late and self.still >= REPLAN_FRAMES and self.replans < MAX_REPLANS
-                and self._replan(x, near, at_c, at_t)):
-            self.best_near, self.still = np.inf, 0
-            return Status.RUNNING
         if late:
             self.message = (f"the strands pass {near:.3f} m apart after the tips arrived "
                             f"(a crossing needs at most {self.gap + self.c.radius + self.t.radius:.3f} m)")
@@ -500,45 +480,6 @@ class Crossing(Maneuver):
                     f"{body}'s particle {h} (held, {abs(m - h)} rods from the moved particle {m})" for body, m, h in held)
             return Status.FAILED
         return Status.RUNNING
-
-    def _replan(self, x: np.ndarray, near: float, at_c: np.ndarray, at_t: np.ndarray) -> bool:
-        """The tips arrived and the strands still pass too far apart (gravity sags them, a hold kept a
-        tip short of its target): carry each tip on towards the other strand, across the line where
-        they pass closest, by half the distance still to close, scaled up by how far along from its
-        bottom to its tip the closest point lies (a strand pivots about its bottom), within its reach.
-        A tip that cannot go further leaves the rest to the other at the next replan. Returns whether a
-        hand was given somewhere to go (False: neither can move, the crossing waits out its time).
-        """
-        p = self.params
-        want = 0.75 * (self.gap + self.c.radius + self.t.radius)
-        d = at_t - at_c
-        n = float(np.linalg.norm(d))
-        if n < 1e-9 or near <= want:
-            return False
-        d /= n
-        planned = False
-        for k, (base, reach, side) in enumerate(self.tip_plans):
-            idx, pos, _ = self.moves[k]
-            at = at_c if side > 0 else at_t
-            lever = float(np.linalg.norm(at - base)) / max(float(np.linalg.norm(pos - base)), 1e-9)
-            goal = pos + side * d * (0.5 * (near - want) / min(max(lever, 0.25), 1.0))
-            goal = _within(goal, base, max(reach, float(np.linalg.norm(pos - base))))
-            if float(np.linalg.norm(goal - pos)) > 0.1 * p.tolerance:
-                self.moves[k] = (idx, pos, [goal])
-                planned = True
-        if not planned:
-            return False
-        self._keep_holds()
-        for k, (idx, pos, ways) in enumerate(self.moves):
-            clearance = float(self.world.model.data.radius[np.atleast_1d(idx)].max())
-            self.moves[k] = (idx, pos, list(self.world.clear_of_solids(np.array(ways), clearance)) if ways else [])
-        added = sum(float(np.linalg.norm(ways[0] - pos)) for _, pos, ways in self.moves if ways)
-        if added <= 0.1 * p.tolerance:
-            return False
-        self.total += added
-        self.replans += 1
-        self.note = f"the tips were carried on {self.replans} time(s): the strands passed too far apart"
-        return True
 
     def approach(self, x: np.ndarray):
         """Closest approach of C and T now: ``(distance, point on C, point on T)``."""
