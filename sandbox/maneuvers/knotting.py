@@ -245,11 +245,7 @@ class Crossing(Maneuver):
     ``Winding``'s last wound particle, an ``Anchoring``). Done when the tips
     are there and the strands pass within ``gap`` + radii of each other; the
     tips stay held. Where they pass closest is recorded as the crossing for
-    a following ``Winding``. Where the tips arrived and the strands stopped
-    closing on each other still too far apart (they sag, a hold kept a tip
-    short), the tips are carried on towards each other, up to
-    ``MAX_REPLANS`` times, within their reach (``_replan``), instead of
-    waiting out the timeout.
+    a following ``Winding``.
     """
 
     name = "Crossing"
