@@ -69,7 +69,7 @@ from sandbox.solvers.rope_chain import ChainProjection, build_chains, has_rope_c
 PREDICT, SELF_LISTS, ROPE_HASH, CONSTRAINTS, ROPE_COLLIDE, SELF_COLLIDE, CONTACTS, VELOCITIES, ROPE_INEXT, RESWEEP, \
     JOINT, SETTLE, FINAL_SWEEP = range(13)
 # The joint cloth step's parts: a launch runs JOINT as JOINT_BEGIN, one JOINT_CG per CG iteration, JOINT_END
-# (``_split``), each JOINT_CG a kernel of its own, launched once per iteration rather than unrolled.
+# (``XPBDSolver._runs``), each JOINT_CG a kernel of its own, launched once per iteration rather than unrolled.
 JOINT_BEGIN, JOINT_CG, JOINT_END = range(13, 16)
 # Most iterations one fused kernel unrolls. One: a substep is a launch for the
 # passes before the iterations, one per iteration and one for the passes after
