@@ -187,3 +187,50 @@ def test_a_crossing_bottom_can_be_a_place_the_strand_passes():
     line = w.cloth("F").control_line(1)
     assert m.c_part.idx[0] == line[2] and m.c_part.idx[-1] == line[-1]
     assert m.t_part.idx[0] == w.cloth("F").site("center")
+
+
+def test_gathered_radius_leaves_out_cloth_beside_the_line_that_is_far_from_it_in_the_material():
+    """A strip (0.4 m x 0.1 m) whose line is its first half's middle row, folded so that the cloth past
+    the line's end lies 5 cm above the line's middle: the 5 cm of it past the end belong to the line
+    (within a quarter of its 0.2 m rest length), and their nearest point on the line is within the
+    0.1 m measured about the middle, but they are 0.1 m from the middle in the material, so the bundle
+    is the flat strip's (the closed form of the flat case)."""
+    from sandbox.model.builder import ClothRange
+
+    nx, nz, h = 41, 11, 0.01
+    i, j = np.meshgrid(np.arange(nx), np.arange(nz))
+    x0 = np.stack([i.ravel() * h, 0 * i.ravel(), j.ravel() * h - (nz - 1) * h / 2], 1).astype(float)
+    cloth = ClothRange("S", 0, nx, nz, (h, h), 0.002, np.zeros((0, 3), np.int32), (1, 1, 1), (1, 1, 1), False)
+    line = cloth.line_between([0, nz // 2], [20, nz // 2])
+    st = Strand("S.half", "S", line, line, np.full(20, h), 0.001, cloth=True, rest_pos=x0[line])
+    around = x0[line[10]]  # x = 0.1 m
+    folded = x0.copy()
+    past = x0[:, 0] > 0.2 + 1e-9  # columns 21-40: turned back to lie above x = 0.09 .. -0.1 (5 cm up)
+    folded[past, 0] = 0.3 - x0[past, 0]
+    folded[past, 1] = 0.05
+    flat = gathered_radius(x0, st, cloth, x0, around, length=0.1)
+    cols = np.abs(x0[:, 0] - around[0]) <= 0.05 + 1e-9
+    assert flat == pytest.approx(np.percentile(np.abs(x0[cols, 2]), 90) + 0.001, rel=1e-9)
+    assert gathered_radius(folded, st, cloth, x0, around, length=0.1) == pytest.approx(flat, rel=1e-9)
+
+
+def test_knot_criteria_read_two_control_lines_joined_through_the_cloth_centre():
+    """The knot between two lines of one cloth: each line runs from the shared centre to its corner, and
+    the two are joined there (as two ropes at their standing ends) and closed far away. Two lines laid
+    along a left granny (two left trefoils in a row, cut between them) are a granny_left; the level
+    check takes cloth lines in a criterion's ``of`` and names an unknown cloth."""
+    from sandbox.io import criteria
+    from tests.test_knots import two_ropes
+
+    a, b = two_ropes(first_left=True, second_left=True)
+    centre = 0.5 * (a[0] + b[0])
+    x = np.vstack([centre, a, b]).astype(np.float32)
+    lines = {"F.line1": np.arange(0, len(a) + 1), "F.line3": np.concatenate([[0], len(a) + 1 + np.arange(len(b))])}
+    world = types.SimpleNamespace(positions=lambda: x, ropes={}, cloths={"F": None},
+                                  strand=lambda n: types.SimpleNamespace(idx=lines[n], radius=0.05))
+    assert criteria._knot(world, ["F.line1", "F.line3"]) == "granny_left"
+    assert criteria._knot(world, ["F.line3", "F.line1"]) == "granny_left"
+    text = _scene().replace("success:\n", "success:\n  - {metric: knot, of: [F.line1, F.line3], equals: granny_left}\n")
+    load_level_from_string(text, base_dir=ROOT / "levels")
+    with pytest.raises(LevelError, match="unknown cloth 'G'"):
+        load_level_from_string(text.replace("of: [F.line1", "of: [G.line1"), base_dir=ROOT / "levels")

@@ -273,6 +273,75 @@ def test_crossing_is_found_between_the_bottoms_and_the_tips():
     assert abs(x[0]) < 0.05
 
 
+SIDE_BY_SIDE = """
+version: 1
+name: side_by_side
+scene:
+  gravity: [0, -9.81, 0]
+  ropes:
+    - {name: A, points: [[-0.008, 0.3, 0], [-0.008, 0.8, 0]], rod_length: 0.01, radius: 0.006}
+    - {name: B, points: [[0.008, 0.3, 0], [0.008, 0.8, 0]], rod_length: 0.01, radius: 0.006}
+sim: {fps: 60, substeps: 10, iterations: 2}
+fsm:
+  - {run: Anchoring, with: {body: A, sites: [start, 10, 25, end]}}
+  - {run: Anchoring, with: {body: B, sites: [start, 10, 25, end]}}
+  - {run: Crossing, with: {active: B, target: A, active_base: [0.008, 0.4, 0], target_base: [-0.008, 0.4, 0],
+                           height: 0.12, slack: 0.97OFFSET}, timeout: 300}
+"""
+
+
+def test_strands_cross_above_place_bottoms_and_the_hands_take_them_from_there():
+    """Two strands standing up from a U (two cloth corners stood up on an object's top, apart), their
+    bottoms given as places 0.1 m up: each bottom is pinched where it is, what earlier hands held between
+    it and the tip (particle 25) is let go, holds below the bottoms stay, and the strands cross above the
+    bottoms, beyond the same bend."""
+    text = (SIDE_BY_SIDE.replace("OFFSET", "").replace("-0.008", "-0.1").replace("0.008", "0.1"))
+    w = _world(text)
+    started = False
+    for _ in range(300):
+        w.step()
+        m = w.fsm._maneuver
+        if m is not None and m.name == "Crossing" and not started:
+            started = True
+            assert w.control.is_driven([10, w.rope("B").start + 10]).all()  # the bottoms: pinched
+            assert not w.control.is_driven([25, w.rope("B").start + 25]).any()  # between: let go
+        if w.fsm.finished:
+            break
+    assert started and w.fsm.succeeded, w.fsm.events
+    x = w.record.crossings[("B", "A")]
+    assert x[1] > 0.4 + 0.03, x  # above the bottoms (0.4 m)
+    assert w.control.is_driven([0, w.rope("B").start]).all()  # below the bottoms the holds stay
+
+
+def test_the_crossing_is_sought_beyond_the_same_bend_from_each_bottom():
+    """Strands whose bottoms touch pass closest there: the part searched for the crossing leaves out the
+    particles within the same bend (half a tube turn plus two rods) of the bottom, at whichever end of
+    the part the bottom is, and keeps at least two at the tip's end."""
+    from sandbox.maneuvers.knotting import _off_bottom, _same_bend
+
+    w = _world(SIDE_BY_SIDE.replace("OFFSET", ""))
+    a, b = w.strand("A"), w.strand("B")
+    k = int(np.ceil(_same_bend(a, b) / a.rod_length))
+    assert k == 7  # pi 1.1 (0.006 + 0.006) / 0.01 + 2 = 6.15 rods, rounded up
+    up = a.part(10, 50)
+    np.testing.assert_array_equal(_off_bottom(up, np.array([10]), b).idx, a.idx[10 + k:51])
+    np.testing.assert_array_equal(_off_bottom(up, np.array([50]), b).idx, a.idx[10:51 - k])
+    short = a.part(10, 13)
+    np.testing.assert_array_equal(_off_bottom(short, np.array([10]), b).idx, a.idx[12:14])
+
+
+def test_contact_offset_from_a_place_bottom_pinches_the_strand_above_it():
+    """``contact_offset`` from a bottom given as a place: the pinch is that far towards the tip."""
+    w = _world(SIDE_BY_SIDE.replace("OFFSET", ", contact_offset: 0.05"))
+    while w.fsm._maneuver is None or w.fsm._maneuver.name != "Crossing":
+        w.step()
+    w.step()
+    assert w.control.is_driven([15, w.rope("B").start + 15]).all()  # 5 rods of 0.01 m above particle 10
+    with pytest.raises(LevelError, match="contact_spread carries two pinched bottoms apart"):
+        load_level_from_string(SIDE_BY_SIDE.replace("OFFSET", ", contact_spread: 0.05").replace(
+            "active_base: [0.008, 0.4, 0]", "active_base: 10"))
+
+
 PULL = """
 version: 1
 name: pull
@@ -534,7 +603,7 @@ def test_crossing_contact_offset_pinches_each_strand_out_of_the_contact():
 def test_contact_offset_without_a_contact_bottom_is_a_level_error():
     with pytest.raises(LevelError) as err:
         load_level_from_string(TWO_ROPES.replace("sign: SIGN,", "sign: 1, contact_offset: 0.05,"))
-    assert "contact_offset moves a 'contact' bottom" in str(err.value)
+    assert "contact_offset moves a 'contact' or place bottom" in str(err.value)
 
 
 def test_crossing_above_a_contact_fails_when_the_strands_do_not_touch():

@@ -110,26 +110,41 @@ def _linking_number(world, of) -> float:
                                 world.rope_positions(names[1]).astype(np.float64)))
 
 
+def _strand_points(world, name: str) -> np.ndarray:
+    """Positions along a rope, a strand ``R[i0:i1]`` of one, or a cloth line (from its start: a control line's
+    centre), float64."""
+    from sandbox.model.strands import parse_cloth_line
+
+    if parse_cloth_line(name) is None:
+        return world.rope_positions(name).astype(np.float64)
+    return world.positions()[world.strand(name).idx].astype(np.float64)
+
+
 def _knot(world, of) -> str:
-    """Name of the knot tied in one rope, or between two ropes joined at their standing ends."""
+    """Name of the knot tied in one rope, or between two ropes (or two cloth lines) joined at their standing
+    ends: two control lines of one cloth are joined through its centre, where both start."""
     from sandbox.geometry.knots import identify_knot, identify_two_ropes
 
     names = _bodies(world, of)
     if len(names) == 1:
-        return identify_knot(world.rope_positions(names[0]).astype(np.float64)).name
+        return identify_knot(_strand_points(world, names[0])).name
     if len(names) == 2:
-        return identify_two_ropes(world.rope_positions(names[0]).astype(np.float64),
-                                  world.rope_positions(names[1]).astype(np.float64), join="standing").name
+        return identify_two_ropes(_strand_points(world, names[0]), _strand_points(world, names[1]),
+                                  join="standing").name
     raise ValueError("knot needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]' (a knot between two)")
 
 
 def _touch_measure(world, of, metric: str, measure) -> float:
-    """``measure(a, b or None, radius=...)`` of the knot in one rope or between two."""
+    """``measure(a, b or None, radius=...)`` of the knot in one rope or between two (ropes or cloth lines; a
+    cloth line's radius is half the cloth's thickness)."""
+    from sandbox.model.strands import parse_cloth_line
+
     names = _bodies(world, of)
     if len(names) not in (1, 2):
         raise ValueError(f"{metric} needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]'")
-    pts = [world.rope_positions(n).astype(np.float64) for n in names]
-    radius = max(world.body_scale(base_name(n)) for n in names)
+    pts = [_strand_points(world, n) for n in names]
+    radius = max(world.strand(n).radius if parse_cloth_line(n) is not None else world.body_scale(base_name(n))
+                 for n in names)
     return measure(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
 
 

@@ -277,6 +277,18 @@ def check_criteria(
         else:
             continue
         for path, target in targets:
+            from sandbox.model.strands import parse_cloth_line
+
+            try:
+                line = parse_cloth_line(target) if isinstance(target, str) else None
+            except ValueError as exc:
+                out.append(Finding(path, str(exc)))
+                continue
+            if line is not None:  # a cloth line F.line1 / F.P..Q: its cloth must exist
+                if line[0] not in names["cloth"]:
+                    out.append(Finding(path, f"cloth line {target!r}: unknown cloth {line[0]!r}; cloths: "
+                                             f"{', '.join(names['cloth']) or '(none)'}"))
+                continue
             if isinstance(target, str) and "[" in target:
                 from sandbox.model.strands import parse_strand
 

@@ -119,22 +119,24 @@ def strand_approach(x: np.ndarray, c: Strand, t: Strand):
     return closest_approach(x[c.idx], x[t.idx], _apart(c, t, c.idx, t.idx))
 
 
-def knot_exit(x: np.ndarray, strand, others, toward: int) -> int | None:
+def knot_exit(x: np.ndarray, strand, others, toward: int, radii=None) -> int | None:
     """Global index of the particle of ``strand`` nearest particle ``toward`` that touches ``others``.
 
     Touching is being within 1.5 (r + r_other) of one of their particles
     (strands of the same rope skip the particle's own neighbourhood). This is
     where the strand leaves a knot on its way to ``toward`` (its tip); None
-    when it touches none of them.
+    when it touches none of them. ``radii``: r of ``strand`` and of each of
+    ``others`` (default: their own radii; a cloth line's is its bundle's).
     """
+    r = [s.radius for s in (strand, *others)] if radii is None else list(radii)
     xs = x[strand.idx]
     near = np.zeros(len(xs), bool)
-    for o in others:
+    for o, r_o in zip(others, r[1:]):
         d = np.linalg.norm(xs[:, None, :] - x[o.idx][None, :, :], axis=2)
         apart = _apart(strand, o, strand.idx, o.idx)
         if apart is not None:
             d = np.where(apart, d, np.inf)
-        near |= (d <= 1.5 * (strand.radius + o.radius)).any(axis=1)
+        near |= (d <= 1.5 * (r[0] + r_o)).any(axis=1)
     touching = np.flatnonzero(near)
     if not len(touching):
         return None
@@ -145,6 +147,23 @@ def _between(strand: Strand, base: np.ndarray, tip: np.ndarray) -> Strand:
     """The part of ``strand`` from its bottom particles to its tip's, both included."""
     at = strand.along(np.concatenate([np.atleast_1d(base), np.atleast_1d(tip)]))
     return strand.part(int(at.min()), int(at.max()))
+
+
+def _off_bottom(part: Strand, base: np.ndarray, other: Strand) -> Strand:
+    """``part`` (from its bottom ``base`` to its tip) less the particles within the same bend of its bottom.
+
+    Two strands whose bottoms touch (two cloth corners stood up side by side
+    on an object, two ropes leaving one knot) pass closest there; the
+    crossing is above, between the bottoms and the tips. At least two
+    particles are kept, at the tip's end.
+    """
+    k = int(np.ceil(_same_bend(part, other) / max(part.rod_length, 1e-12)))
+    lo = int(part.along(part.idx[0]))
+    hi = lo + len(part) - 1
+    b = float(np.mean(part.along(np.atleast_1d(base))))
+    if abs(b - lo) <= abs(b - hi):
+        return part.part(min(lo + k, hi - 1), hi)
+    return part.part(lo, max(hi - k, lo + 1))
 
 
 def _within(point: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -201,14 +220,17 @@ class CrossingParams(Params):
     # (e.g. where a cloth's control line passes the top of the object it wraps).
     active_base: Site | Literal["contact"] | TargetLike | None = None
     target_base: Site | Literal["contact"] | TargetLike | None = None  # T's constrained bottom point (as ``active_base``)
-    # m along each strand from its "contact" towards its tip where a hand
-    # pinches it (held through the crossing): the bottoms of a second half
-    # knot then sit apart, on either side of the first, as the strands leave it.
+    # m along each strand from its "contact" (or place) bottom towards its tip
+    # where a hand pinches it (held through the crossing): the bottoms of a
+    # second half knot then sit apart, on either side of the first, as the
+    # strands leave it; two cloth corners stood up side by side are pinched
+    # above where they leave the object.
     contact_offset: Annotated[float, pydantic.Field(ge=0)] = 0.0
     # m: the hands then carry the two pinched bottoms apart, this far, level
     # with the knot and on either side of it, before the tips cross: the
     # second half knot starts from the same U as the first, with the knot
-    # tied before at its bottom instead of the object.
+    # tied before at its bottom instead of the object (and two strands that
+    # leave one point of an object start from a U).
     contact_spread: Annotated[float, pydantic.Field(gt=0)] | None = None
     height: Annotated[float, pydantic.Field(gt=0)] = 0.15  # m, X above the bottoms
     sign: Literal[1, -1] = 1  # +1: C passes in front of T (on +z)
@@ -220,13 +242,14 @@ class CrossingParams(Params):
 
     @pydantic.model_validator(mode="after")
     def _offset_needs_contact(self):
-        if self.contact_offset > 0 and "contact" not in (self.active_base, self.target_base):
-            raise ValueError("contact_offset moves a 'contact' bottom: set active_base or target_base "
-                             "to 'contact', or leave contact_offset at 0")
-        if self.contact_spread is not None and not (
-                self.active_base == self.target_base == "contact" and self.contact_offset > 0):
+        pinchable = [b == "contact" or isinstance(b, Target) for b in (self.active_base, self.target_base)]
+        if self.contact_offset > 0 and not any(pinchable):
+            raise ValueError("contact_offset moves a 'contact' or place bottom: set active_base or target_base "
+                             "to 'contact' or to a place, or leave contact_offset at 0")
+        if self.contact_spread is not None and not (all(pinchable) and self.contact_offset > 0):
             raise ValueError("contact_spread carries two pinched bottoms apart: set active_base and "
-                             "target_base to 'contact' and contact_offset > 0, or leave contact_spread out")
+                             "target_base to 'contact' or to places, and contact_offset > 0, or leave "
+                             "contact_spread out")
         if self.contact_spread is not None and self.contact_spread > 2.0 * self.contact_offset:
             raise ValueError(f"contact_spread {self.contact_spread} is more than the rope between the two "
                              f"pinches allows (2 x contact_offset = {2.0 * self.contact_offset:g})")
@@ -265,6 +288,7 @@ class Crossing(Maneuver):
         self.moves = []  # (particle indices, current command, waypoints)
         self.limits = []  # (body, moved particle, held particle that limited it)
         self.c_part, self.t_part = self.c, self.t
+        self.c_cross, self.t_cross = self.c, self.t
         if base_c is None or base_t is None:
             return  # ``update`` reports the failure with the message
         gap = p.gap if p.gap is not None else 1.5 * (self.c.radius + self.t.radius)
@@ -273,6 +297,17 @@ class Crossing(Maneuver):
         # side by side below the bottoms (two ropes a cloth joins) are not it.
         self.c_part = _between(self.c, base_c, tip_c_idx)
         self.t_part = _between(self.t, base_t, tip_t_idx)
+        self.c_cross = _off_bottom(self.c_part, base_c, self.t)
+        self.t_cross = _off_bottom(self.t_part, base_t, self.c)
+        # The hands take each strand between its bottom and its tip: what an
+        # earlier maneuver held there (a cloth corner a Wrapping stood up) is
+        # let go, and a bottom given as a place is pinched where it is.
+        for part, base, tip, site in ((self.c_part, base_c, tip_c_idx, p.active_base),
+                                      (self.t_part, base_t, tip_t_idx, p.target_base)):
+            inner = part.idx[~np.isin(part.idx, np.concatenate([np.atleast_1d(base), np.atleast_1d(tip)]))]
+            w.control.release(inner[w.control.is_driven(inner)])
+            if isinstance(site, Target):
+                w.control.drive(base, x[base])
         # Rope length between each bottom and its tip (not the whole strand).
         len_c = self.c.rod_length * abs(float(self.c.along(tip_c_idx).mean() - self.c.along(base_c).mean()))
         len_t = self.t.rod_length * abs(float(self.t.along(tip_t_idx).mean() - self.t.along(base_t).mean()))
@@ -399,11 +434,15 @@ class Crossing(Maneuver):
         """
         if site is None:
             return self.world.site_particles(body, _other_end(tip_site))
+        if site != "contact" and not isinstance(site, Target):
+            return self.world.site_particles(body, site)
         if isinstance(site, Target):
             where = resolve_target(self.world, site)
-            return np.array([int(strand.idx[np.argmin(np.linalg.norm(x[strand.idx] - where, axis=1))])])
-        if site != "contact":
-            return self.world.site_particles(body, site)
+            k = int(strand.idx[np.argmin(np.linalg.norm(x[strand.idx] - where, axis=1))])
+            if self.params.contact_offset <= 0:
+                return np.array([k])
+            self.contacts.append(x[k].copy())
+            return self._pinch(x, strand.whole(), k, tip_idx)
         # The knot may have slid past the strands' split while it was
         # tightened (an overhand creeps along its rope): look along the whole
         # rope, at every part of the ropes it could touch.
@@ -411,16 +450,35 @@ class Crossing(Maneuver):
         same = len(whole.line) == len(other_whole.line) and np.array_equal(whole.line, other_whole.line)
         parts = [whole] if same else [whole, other_whole]
         tip = int(whole.at_along(int(whole.along(tip_idx).mean())))
-        k = knot_exit(x, whole, parts, tip)
+        k = knot_exit(x, whole, parts, tip, [self._bundle(x, st, other_whole if st is whole else whole)
+                                             for st in (whole, *parts)])
         if k is None:
             self.message = f"strand {body!r} does not touch {other.name!r}: no contact to cross above"
             return None
         self.contacts.append(x[k].copy())
         if self.params.contact_offset > 0:
-            step = int(round(self.params.contact_offset / strand.rod_length))
-            ak, at = whole.along(k), whole.along(tip)
-            k = int(whole.at_along(int(np.clip(ak + np.sign(at - ak) * step, min(ak, at), max(ak, at)))))
-            self.world.control.drive([k], x[k][None, :])  # pinched where it is
+            return self._pinch(x, whole, k, tip)
+        return np.array([k])
+
+    def _bundle(self, x: np.ndarray, strand: Strand, other: Strand) -> float:
+        """Radius of ``strand`` where it passes closest to ``other``: a rope's own; for a cloth line, the cloth
+        gathered around it (``gathered_radius``) over one turn of the two strands' tube."""
+        if not strand.cloth:
+            return strand.radius
+        from sandbox.model.strands import gathered_radius
+
+        _, i, _ = strand_approach(x, strand, other)
+        w = self.world
+        return gathered_radius(x, strand, w.cloth(strand.body), w.data.x0, x[strand.idx[i]],
+                               2.0 * _same_bend(strand, other))
+
+    def _pinch(self, x, whole, k: int, tip) -> np.ndarray:
+        """The particle ``contact_offset`` along ``whole`` from ``k`` towards the tip, pinched where it is."""
+        tip = int(whole.at_along(int(np.mean(whole.along(np.atleast_1d(tip))))))
+        step = int(round(self.params.contact_offset / whole.rod_length))
+        ak, at = whole.along(k), whole.along(tip)
+        k = int(whole.at_along(int(np.clip(ak + np.sign(at - ak) * step, min(ak, at), max(ak, at)))))
+        self.world.control.drive([k], x[k][None, :])
         return np.array([k])
 
     def update(self) -> Status:
@@ -479,8 +537,8 @@ class Crossing(Maneuver):
 
     def approach(self, x: np.ndarray):
         """Closest approach of C and T now: ``(distance, point on C, point on T)``."""
-        d, i, j = strand_approach(x, self.c_part, self.t_part)
-        return d, x[self.c_part.idx[i]], x[self.t_part.idx[j]]
+        d, i, j = strand_approach(x, self.c_cross, self.t_cross)
+        return d, x[self.c_cross.idx[i]], x[self.t_cross.idx[j]]
 
     def metrics(self) -> dict[str, float]:
         return {"miss": self.approach(self.world.positions().astype(np.float64))[0]}

@@ -454,7 +454,8 @@ class Winding(Maneuver):
         The tail then sweeps around T with the winding instead of dangling on
         whichever side gravity takes it, so the tail leaves the knot the way
         the winding goes (the knot's identity does not depend on where it
-        falls). The tip moves at most ``TAIL_SPEED``.
+        falls). The tip moves at most ``TAIL_SPEED``, and is kept its radius
+        clear of every object and the ground.
         """
         p, w = self.params, self.world
         k = min(self.k, self.n - 1)
@@ -463,8 +464,11 @@ class Winding(Maneuver):
         norm = float(np.linalg.norm(tangent))
         if norm < 1e-9:
             return
-        left = abs(self.tip - self._particle(self.k)) * self.c.rod_length
-        goal = target + (p.carry_tail * left / norm) * tangent
+        left = abs(float(self.c.along(self.tip)) - float(self.c.along(self._particle(self.k)))) * self.c.rod_length
+        # A hand keeps what it holds clear of the object and the ground (the
+        # tail's tangent may point into them where T lies on the object).
+        clearance = float(w.model.data.radius[self.tip])
+        goal = w.clear_of_solids(target + (p.carry_tail * left / norm) * tangent, clearance)[0]
         d = goal - self.tip_pos
         dist = float(np.linalg.norm(d))
         step = TAIL_SPEED / w.fps

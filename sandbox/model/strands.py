@@ -231,7 +231,13 @@ def gathered_radius(x: np.ndarray, strand: Strand, cloth, x0: np.ndarray, around
     line = x[strand.line].astype(np.float64)
     d, s = polyline_distance(pts, line, with_arc=True)
     s0 = polyline_distance(np.asarray(around, float), line, with_arc=True)[1][0]
-    near = np.abs(s - s0) <= 0.5 * length
+    # Near ``around`` now and in the material: cloth of the line's other
+    # parts that lies beside this one (a flap of the same line folded back
+    # over the object) is not gathered here.
+    _, s_rest = polyline_distance(x0[gi[mine]], x0[strand.line], with_arc=True)
+    rest_arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(x0[strand.line], axis=0), axis=1))])
+    k0 = int(np.argmin(np.linalg.norm(line - np.asarray(around, float), axis=1)))
+    near = (np.abs(s - s0) <= 0.5 * length) & (np.abs(s_rest - rest_arc[k0]) <= 0.5 * length)
     if not near.any():
         return strand.radius
     return float(np.percentile(d[near], 90.0)) + strand.radius
