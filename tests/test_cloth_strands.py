@@ -146,7 +146,8 @@ def test_a_ribbon_is_crossed_and_wound_by_its_middle_lines():
     """A 2 cm ribbon (121 x 3 particles) laid over a box, its two halves named as lines of its middle row:
     the Crossing brings them across above the box, and the Winding lays C's particles one at a time
     around the tube of the cloth gathered around T. At every frame the hands hold only the anchored
-    centre and particles of the two lines; the tube's radii are the ribbon's (the 90th percentile of
+    centre and particles of the two lines, and no target lies within the ribbon's radius of the box; the
+    tube's radii are the ribbon's (the 90th percentile of
     its particles' distances across, 1 cm, plus half the 1.5 cm thickness: 1.75 cm), over a part of T
     as long as a turn covers; the laid particles are C's."""
     w = _world(RIBBON)
@@ -165,6 +166,8 @@ def test_a_ribbon_is_crossed_and_wound_by_its_middle_lines():
             assert driven - lines <= anchored, f"frame {w.frame}: {sorted(driven - lines - anchored)[:5]} held"
         if m is not None and m.name == "Winding":
             winding = m
+            d, _, _ = w.objects.query_numpy(m.targets)
+            assert d.min() >= m.rc - 1e-5, f"frame {w.frame}: a target {d.min():.4f} m from the box"
     assert anchored and winding is not None and winding.k >= 4
     assert winding.rc == pytest.approx(0.0175, abs=5e-4) and winding.rt == pytest.approx(0.0175, abs=5e-4)
     turn = 2 * np.pi * winding.R / np.tan(np.radians(45)) + 4 * winding.R
@@ -234,3 +237,13 @@ def test_knot_criteria_read_two_control_lines_joined_through_the_cloth_centre():
     load_level_from_string(text, base_dir=ROOT / "levels")
     with pytest.raises(LevelError, match="unknown cloth 'G'"):
         load_level_from_string(text.replace("of: [F.line1", "of: [G.line1"), base_dir=ROOT / "levels")
+
+
+def test_a_strand_crossed_with_or_wound_around_itself_is_caught_when_the_level_loads():
+    text = _scene(active="F.line1", target="F.line1")
+    with pytest.raises(LevelError, match="active and target are the same strand 'F.line1'") as err:
+        load_level_from_string(text, base_dir=ROOT / "levels")
+    assert "fsm[2].with: maneuver 'Crossing'" in str(err.value)
+    winding_only = _scene().replace('active: "F.line1", target: "F.line3", theta', 'active: "F.line3", target: "F.line3", theta')
+    with pytest.raises(LevelError, match="same strand 'F.line3'"):
+        load_level_from_string(winding_only, base_dir=ROOT / "levels")

@@ -208,6 +208,16 @@ def within_holds(point: np.ndarray, particle: float, holds, rod_length: float, s
     return q, limit
 
 
+def check_two_strands(params):
+    """A Crossing or Winding takes two different strands: a strand crossed with or wound around itself is not
+    a knot."""
+    if "".join(params.active.split()) == "".join(params.target.split()):
+        raise ValueError(f"active and target are the same strand {params.active!r}: name two (two ropes, two "
+                         "runs of one rope R[i0:i1] for a knot in one rope, or two cloth lines such as "
+                         "F.line1 and F.line3)")
+    return params
+
+
 class CrossingParams(Params):
     active: str  # strand C: a rope, a run R[i0:i1] of one, or a cloth line F.line1-F.line4 / F.P..Q
     target: str  # strand T (as active)
@@ -239,6 +249,8 @@ class CrossingParams(Params):
     lift: Annotated[float, pydantic.Field(ge=0)] = 0.05  # m, tips rise first by this much
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.5  # m/s of the tips
     tolerance: Annotated[float, pydantic.Field(gt=0)] = 0.005  # m
+
+    _two_strands = pydantic.model_validator(mode="after")(check_two_strands)
 
     @pydantic.model_validator(mode="after")
     def _offset_needs_contact(self):
@@ -299,14 +311,16 @@ class Crossing(Maneuver):
         self.t_part = _between(self.t, base_t, tip_t_idx)
         self.c_cross = _off_bottom(self.c_part, base_c, self.t)
         self.t_cross = _off_bottom(self.t_part, base_t, self.c)
-        # The hands take each strand between its bottom and its tip: what an
-        # earlier maneuver held there (a cloth corner a Wrapping stood up) is
-        # let go, and a bottom given as a place is pinched where it is.
+        # A bottom given as a place is a hand pinching the strand where it
+        # passes there and taking it from there to the tip: what an earlier
+        # maneuver held in between (a cloth corner a Wrapping stood up) is let
+        # go. (A bottom named as a site is held by another hand; what is held
+        # between it and the tip stays held.)
         for part, base, tip, site in ((self.c_part, base_c, tip_c_idx, p.active_base),
                                       (self.t_part, base_t, tip_t_idx, p.target_base)):
-            inner = part.idx[~np.isin(part.idx, np.concatenate([np.atleast_1d(base), np.atleast_1d(tip)]))]
-            w.control.release(inner[w.control.is_driven(inner)])
             if isinstance(site, Target):
+                inner = part.idx[~np.isin(part.idx, np.concatenate([np.atleast_1d(base), np.atleast_1d(tip)]))]
+                w.control.release(inner[w.control.is_driven(inner)])
                 w.control.drive(base, x[base])
         # Rope length between each bottom and its tip (not the whole strand).
         len_c = self.c.rod_length * abs(float(self.c.along(tip_c_idx).mean() - self.c.along(base_c).mean()))

@@ -23,7 +23,7 @@ import pydantic
 
 from sandbox.record import WindingRecord
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
-from sandbox.maneuvers.knotting import rope_holds, within_holds
+from sandbox.maneuvers.knotting import check_two_strands, rope_holds, within_holds
 
 
 STUCK_FRAMES = 15
@@ -72,6 +72,8 @@ class WindingParams(Params):
     # two targets on G cut inside the tube by up to R - sqrt(R^2 - l^2 / 4)
     # (1 mm for 6 mm ropes and 1 cm rods): a taut turn then presses T by that much.
     clearance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.1
+
+    _two_strands = pydantic.model_validator(mode="after")(check_two_strands)
 
 
 # How far a command may take the driven particle from another hold on C: k rods
@@ -282,7 +284,9 @@ class Winding(Maneuver):
                 t = t - float(t @ self.geodesic.x_hat) * self.geodesic.x_hat
             t /= max(float(np.linalg.norm(t)), 1e-12)
             pts = np.vstack([pts, pts[-1] + np.outer(np.arange(1, m + 1) * self.c.rod_length, t)])
-        return pts
+        # The hand lays each particle at least its radius clear of every object and the ground: where T
+        # lies on an object the tube runs into it, and a driven particle there drags the cloth through.
+        return self.world.clear_of_solids(pts, self.rc)
 
     def _particle(self, k: int) -> int:
         return int(self.c.idx[self.i0 + self.params.direction * k])
