@@ -146,6 +146,15 @@ class Sandbox:
     def rope_radius(self, name: str) -> float:
         return self.world.rope(name).radius
 
+    def strand_positions(self, name: str) -> np.ndarray:
+        """(k, 3) float32 positions along a rope, a strand ``R[i0:i1]`` of one, or a cloth line ``F.line1`` /
+        ``F.P..Q`` (m), from its start (a control line's start is the cloth's centre)."""
+        return self.world.positions()[self.world.strand(name).idx]
+
+    def strand_radius(self, name: str) -> float:
+        """A rope's radius, or half a cloth line's cloth thickness (m)."""
+        return float(self.world.strand(name).radius)
+
     def rope_color(self, name: str) -> tuple[float, float, float]:
         return self.world.rope(name).color
 

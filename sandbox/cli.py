@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+import re
 import sys
 
 ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
@@ -55,12 +56,18 @@ def _whole(lo: int, hi: int):
     return parse
 
 
+def _names(text: str) -> list[str]:
+    """Comma-separated names, a comma inside brackets kept (cloth lines such as ``F.[3,4]..center``)."""
+    return [n.strip() for n in re.split(r",(?![^\[]*\])", text) if n.strip()]
+
+
 def cmd_run(a: argparse.Namespace) -> int:
     from sandbox.runner import RunOptions, run_level
 
     if a.out is not None and not a.out.strip():
         raise UsageError("--out is empty; give a folder (default runs/<level>)")
-    if a.follow is not None and not [n for n in a.follow.split(",") if n.strip()]:
+    follow = _names(a.follow) if a.follow is not None else None
+    if follow is not None and not follow:
         raise UsageError("--follow names no rope; give ROPE[,ROPE...]")
     out = pathlib.Path(a.out or pathlib.Path("runs") / pathlib.Path(a.level).stem)
     overrides = _overrides(a.set or [])
@@ -70,7 +77,7 @@ def cmd_run(a: argparse.Namespace) -> int:
     opts = RunOptions(
         out=out, frames=a.frames, arch=a.arch, ply=a.ply, frames_every=a.frames_every or 0, video=a.video,
         gif=a.gif, width=a.width, height=a.height, progress=not a.quiet, overrides=overrides,
-        follow=[n.strip() for n in a.follow.split(",") if n.strip()] if a.follow else None,
+        follow=follow or None,
         follow_distance=a.follow_distance, overwrite=a.overwrite,
     )
     code, summary = run_level(a.level, opts)
@@ -221,7 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--tier", choices=TIERS, help="frame time against accuracy (default: the level's sim.tier, "
                                                  "else accurate); as --set sim.tier=...")
     r.add_argument("--follow", metavar="ROPE[,ROPE...]",
-                   help="rendered frames follow the knot of these ropes (close-up; over the level's camera)")
+                   help="rendered frames follow the knot of these ropes or cloth lines (F.line1, F.P..Q; "
+                        "close-up; over the level's camera)")
     r.add_argument("--follow-distance", type=float, metavar="M",
                    help="m from the followed knot to the camera (default: the level camera's distance, or 0.4)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")

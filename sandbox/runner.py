@@ -129,12 +129,25 @@ def _follow_problem(level, opts: RunOptions) -> str | None:
         return "--follow sets the camera of rendered frames: add --frames-every K, --video or --gif"
     if opts.follow_distance is not None and not opts.follow_distance > 0:
         return f"--follow-distance must be > 0 m, got {opts.follow_distance}"
+    from sandbox.model.strands import parse_cloth_line
+
     ropes = [r.name for r in level.scene.ropes]
+    cloths = [c.name for c in level.scene.cloths]
     if not opts.follow:
         return "--follow-distance needs --follow ROPE[,ROPE...]"
-    bad = [n for n in opts.follow if n not in ropes]
+
+    def known(name: str) -> bool:
+        try:
+            line = parse_cloth_line(name)
+        except ValueError:
+            return False
+        return name in ropes if line is None else line[0] in cloths
+
+    bad = [n for n in opts.follow if not known(n)]
     if bad:
-        return f"--follow: {', '.join(map(repr, bad))} not a rope of {level.name}; ropes: {', '.join(ropes) or '(none)'}"
+        return (f"--follow: {', '.join(map(repr, bad))} not a rope or a cloth line of {level.name}; ropes: "
+                f"{', '.join(ropes) or '(none)'}; cloth lines: F.line1-F.line4 or F.P..Q of "
+                f"{', '.join(cloths) or '(no cloth)'}")
     return None
 
 

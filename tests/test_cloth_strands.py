@@ -247,3 +247,29 @@ def test_a_strand_crossed_with_or_wound_around_itself_is_caught_when_the_level_l
     winding_only = _scene().replace('active: "F.line1", target: "F.line3", theta', 'active: "F.line3", target: "F.line3", theta')
     with pytest.raises(LevelError, match="same strand 'F.line3'"):
         load_level_from_string(winding_only, base_dir=ROOT / "levels")
+
+
+def test_rendered_frames_can_follow_the_knot_of_two_cloth_lines(tmp_path):
+    """``--follow F.line1,F.line3`` (or a level camera's ``follow``): accepted for a level with cloth F,
+    refused (with the allowed forms) for an unknown cloth; the API gives the followed lines' positions
+    from the centre out and their radius."""
+    from sandbox.api import Sandbox
+    from sandbox.cli import _names
+    from sandbox.runner import RunOptions, _follow_problem
+
+    assert _names("F.[3,4]..center, F.line1") == ["F.[3,4]..center", "F.line1"]  # the comma in brackets stays
+
+    level = load_level_from_string(_scene(), base_dir=ROOT / "levels")
+    assert _follow_problem(level, RunOptions(out=tmp_path, follow=["F.line1", "F.line3"], frames_every=5)) is None
+    said = _follow_problem(level, RunOptions(out=tmp_path, follow=["G.line1"], frames_every=5))
+    assert "'G.line1' not a rope or a cloth line" in said and "F.line1-F.line4 or F.P..Q of F" in said
+    cam = "scene:\n  camera: {position: [0, 1, 1], look_at: [0, 0.1, 0], follow: [F.line1, F.line3]}\n"
+    assert load_level_from_string(_scene().replace("scene:\n", cam, 1),
+                                  base_dir=ROOT / "levels").scene.camera.follow == ["F.line1", "F.line3"]
+    sim = Sandbox(level, base_dir=ROOT / "levels")
+    try:
+        line = sim.world.cloth("F").control_line(1)
+        np.testing.assert_array_equal(sim.strand_positions("F.line1"), sim.world.positions()[line])
+        assert sim.strand_radius("F.line1") == pytest.approx(0.5 * sim.world.cloth("F").thickness)
+    finally:
+        sim.close()

@@ -522,7 +522,8 @@ def test_macros_are_checked_when_the_fsm_is_invalid():
 
 
 def test_camera_follow_names_ropes_and_round_trips():
-    """A camera may follow ropes of the scene (and dumps back); other names are errors that list the ropes."""
+    """A camera may follow ropes of the scene or strands of them (and dumps back); other names are errors
+    that list the ropes and the cloth lines (a cloth line of a cloth the scene lacks is one)."""
     cam = "  camera: {position: [0, 1, 1], look_at: [0, 1, 0], follow: [%s], distance: 0.3, smoothing: 0.2}\n"
     good = BASE.replace("scene:\n", "scene:\n" + cam % "rope", 1)
     level = load_level_from_string(good)
@@ -531,6 +532,10 @@ def test_camera_follow_names_ropes_and_round_trips():
     bad = BASE.replace("scene:\n", "scene:\n" + cam % "rope, cord", 1)
     err = only_error(bad)
     assert err.path == "scene.camera.follow[1]" and err.line == line_of(bad, "cord")
-    assert "'cord' is not a rope" in err.message and "ropes: rope" in err.message
+    assert "'cord' is neither" in err.message and "ropes: rope" in err.message
+    strand = BASE.replace("scene:\n", "scene:\n" + cam % '"rope[0:10]", "rope[10:]"', 1)
+    assert load_level_from_string(strand).scene.camera.follow == ["rope[0:10]", "rope[10:]"]
+    line = only_error(BASE.replace("scene:\n", "scene:\n" + cam % "F.line1", 1))
+    assert "'F.line1' is neither" in line.message and "of (no cloth)" in line.message
     neg = BASE.replace("scene:\n", "scene:\n" + (cam % "rope").replace("0.3", "-0.3"), 1)
     assert only_error(neg).path == "scene.camera.distance"

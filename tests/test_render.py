@@ -224,6 +224,12 @@ class FakeSim:
     def rope_radius(self, name):
         return 0.02
 
+    def strand_positions(self, name):  # the followed knot's strands are its ropes
+        return self.rope_positions(name)
+
+    def strand_radius(self, name):
+        return self.rope_radius(name)
+
     def cloth_positions(self, name):
         return self._cloth
 
@@ -492,6 +498,8 @@ class CrossingRopes:
 
     def rope_radius(self, name):
         return self.r
+
+    strand_positions, strand_radius = rope_positions, rope_radius
 
 
 def test_knot_centre_is_where_ropes_touch():

@@ -151,7 +151,7 @@ def test_invalid_level_exits_2_without_output(tmp_path):
 
 @pytest.mark.parametrize("opts, message", [
     ({"follow": ["cord"]}, "add --frames-every K, --video or --gif"),
-    ({"follow": ["cord", "rope9"], "frames_every": 5}, "'rope9' not a rope of engine_small; ropes: cord"),
+    ({"follow": ["cord", "rope9"], "frames_every": 5}, "'rope9' not a rope or a cloth line of engine_small; ropes: cord"),
     ({"follow": ["cord"], "frames_every": 5, "follow_distance": 0.0}, "--follow-distance must be > 0"),
     ({"follow_distance": 0.3, "video": True}, "--follow-distance needs --follow"),
 ])

@@ -110,7 +110,7 @@ class KnotTracker:
     while nothing touches.
 
     Args:
-        ropes: names of the ropes whose knot is followed.
+        ropes: names of the ropes (or strands, or cloth lines ``F.line1``) whose knot is followed.
         look_at: (3,) m, where it is before anything touches (None: the
             followed ropes' centroid when it is first asked).
         smoothing: s; 0 jumps to the knot at once.
@@ -129,8 +129,8 @@ class KnotTracker:
         """The point for the simulation's current state, (3,) m (call once per drawn frame)."""
         from sandbox.geometry.knots import knot_centre
 
-        radius = max(float(sim.rope_radius(n)) for n in self.ropes)
-        ropes = [np.asarray(sim.rope_positions(n), dtype=np.float64) for n in self.ropes]
+        radius = max(float(sim.strand_radius(n)) for n in self.ropes)
+        ropes = [np.asarray(sim.strand_positions(n), dtype=np.float64) for n in self.ropes]
         centre = knot_centre(ropes, radius=radius)
         now = float(sim.time)
         if self.look is None:

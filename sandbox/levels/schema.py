@@ -133,7 +133,8 @@ class Ground(_Model):
 class Camera(_Model):
     """Viewpoint of rendered frames (m, degrees, s).
 
-    With ``follow`` the camera tracks the knot of those ropes: it looks at
+    With ``follow`` the camera tracks the knot of those ropes (or strands
+    ``R[i0:i1]``, or cloth lines ``F.line1`` / ``F.P..Q``): it looks at
     where they touch (the median of their touching points; of one rope,
     where parts of it more than half a turn apart touch) from the direction
     of ``position`` seen from ``look_at``, ``distance`` away (default: as far
@@ -146,7 +147,7 @@ class Camera(_Model):
     position: Vec3
     look_at: Vec3
     fov: between(float, 1, 170, lo_open=True, hi_open=True) = 45.0
-    follow: list[Name] = []
+    follow: list[Str] = []
     distance: Length | None = None
     smoothing: NonNegative = 0.5
 
