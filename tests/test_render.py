@@ -4,6 +4,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -591,3 +592,24 @@ def test_frame_recorder_follows_a_knot_the_level_camera_names(tmp_path):
     a = rec._last[2].astype(int)
     b = plain._last[2].astype(int)
     assert np.abs(a - b).mean() > 5  # a close-up of the crossing, not the level's wide view
+
+
+def test_two_cloth_lines_from_one_centre_are_followed_as_one_curve_through_it():
+    """Two lines of one cloth share its centre particle: the tracker looks at where they cross away from it,
+    not at the join (as two ropes they would touch there). Lines A (along x) and B (out along z, then
+    back over A 2 r above it at x = 0.3) from a shared centre at the origin."""
+    from sandbox.io.frames import KnotTracker
+
+    r = 0.01
+    t = np.linspace(0.0, 0.6, 61)[:, None]
+    a = t * [1.0, 0.0, 0.0]
+    b = np.vstack([t[:31] * [0.0, 0.0, 1.0],
+                   [0.3, 2 * r * 0.999, 0.3] + (t[1:] - 0.3) * [0.0, 0.0, -1.0]])
+    sim = types.SimpleNamespace(time=0.0, strand_radius=lambda n: r,
+                                strand_positions=lambda n: a if n == "F.line1" else b)
+    look = KnotTracker(["F.line1", "F.line3"], smoothing=0.0).update(sim)
+    assert np.allclose(look, [0.3, r, 0.0], atol=0.01), look
+    ropes = KnotTracker(["A", "B"], smoothing=0.0)  # two ropes are not joined: the start counts as a touch
+    sim_r = types.SimpleNamespace(time=0.0, strand_radius=lambda n: r,
+                                  strand_positions=lambda n: a if n == "A" else b)
+    assert not np.allclose(ropes.update(sim_r), [0.3, r, 0.0], atol=0.01)
