@@ -68,7 +68,7 @@ def cmd_run(a: argparse.Namespace) -> int:
         raise UsageError("--out is empty; give a folder (default runs/<level>)")
     follow = _names(a.follow) if a.follow is not None else None
     if follow is not None and not follow:
-        raise UsageError("--follow names no rope; give ROPE[,ROPE...]")
+        raise UsageError("--follow names no rope; give ROPE[,ROPE...] (ropes, R[i0:i1] or cloth lines)")
     out = pathlib.Path(a.out or pathlib.Path("runs") / pathlib.Path(a.level).stem)
     overrides = _overrides(a.set or [])
     if a.tier:

@@ -129,7 +129,7 @@ def _follow_problem(level, opts: RunOptions) -> str | None:
         return "--follow sets the camera of rendered frames: add --frames-every K, --video or --gif"
     if opts.follow_distance is not None and not opts.follow_distance > 0:
         return f"--follow-distance must be > 0 m, got {opts.follow_distance}"
-    from sandbox.model.strands import parse_cloth_line
+    from sandbox.model.strands import parse_cloth_line, parse_strand
 
     ropes = [r.name for r in level.scene.ropes]
     cloths = [c.name for c in level.scene.cloths]
@@ -139,9 +139,9 @@ def _follow_problem(level, opts: RunOptions) -> str | None:
     def known(name: str) -> bool:
         try:
             line = parse_cloth_line(name)
+            return parse_strand(name)[0] in ropes if line is None else line[0] in cloths
         except ValueError:
             return False
-        return name in ropes if line is None else line[0] in cloths
 
     bad = [n for n in opts.follow if not known(n)]
     if bad:

@@ -233,6 +233,19 @@ def test_knot_criteria_read_two_control_lines_joined_through_the_cloth_centre():
                                   strand=lambda n: types.SimpleNamespace(idx=lines[n], radius=0.05))
     assert criteria._knot(world, ["F.line1", "F.line3"]) == "granny_left"
     assert criteria._knot(world, ["F.line3", "F.line1"]) == "granny_left"
+    # Joined through the centre, the lines do not touch where they meet: two straight lines out of it have
+    # no knot to measure (as two ropes from one point, their shared start would be a touch).
+    out = np.array([[0.0, 0.0, 0.0]] + [[0.01 * k, 0.0, 0.0] for k in range(1, 40)]
+                   + [[0.0, 0.0, 0.01 * k] for k in range(1, 40)], np.float32)
+    x[:] = 0.0
+    x[: len(out)] = out
+    lines.update({"F.line1": np.arange(0, 40), "F.line3": np.concatenate([[0], 40 + np.arange(39)])})
+    assert criteria._knot_size(world, ["F.line1", "F.line3"]) == 0.0
+    assert criteria._knot_length(world, ["F.line1", "F.line3"]) == 0.0
+    with pytest.raises(LevelError, match="'winding_number' does not read cloth lines"):
+        load_level_from_string(_scene().replace(
+            "success:\n", "success:\n  - {metric: winding_number, of: [F.line1, F.line3], min: 1}\n"),
+            base_dir=ROOT / "levels")
     text = _scene().replace("success:\n", "success:\n  - {metric: knot, of: [F.line1, F.line3], equals: granny_left}\n")
     load_level_from_string(text, base_dir=ROOT / "levels")
     with pytest.raises(LevelError, match="unknown cloth 'G'"):
@@ -240,10 +253,14 @@ def test_knot_criteria_read_two_control_lines_joined_through_the_cloth_centre():
 
 
 def test_a_strand_crossed_with_or_wound_around_itself_is_caught_when_the_level_loads():
+    """A Crossing or Winding whose active and target name one strand, written the same way or not
+    (``F.line1`` is ``F.center..A``), is refused with the file position and the allowed forms."""
     text = _scene(active="F.line1", target="F.line1")
     with pytest.raises(LevelError, match="active and target are the same strand 'F.line1'") as err:
         load_level_from_string(text, base_dir=ROOT / "levels")
     assert "fsm[2].with: maneuver 'Crossing'" in str(err.value)
+    with pytest.raises(LevelError, match="same strand"):
+        load_level_from_string(_scene(active="F.line1", target="F.center..A"), base_dir=ROOT / "levels")
     winding_only = _scene().replace('active: "F.line1", target: "F.line3", theta', 'active: "F.line3", target: "F.line3", theta')
     with pytest.raises(LevelError, match="same strand 'F.line3'"):
         load_level_from_string(winding_only, base_dir=ROOT / "levels")

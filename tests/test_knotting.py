@@ -283,8 +283,8 @@ scene:
     - {name: B, points: [[0.008, 0.3, 0], [0.008, 0.8, 0]], rod_length: 0.01, radius: 0.006}
 sim: {fps: 60, substeps: 10, iterations: 2}
 fsm:
-  - {run: Anchoring, with: {body: A, sites: [start, 10, 25, end]}}
-  - {run: Anchoring, with: {body: B, sites: [start, 10, 25, end]}}
+  - {run: Anchoring, with: {body: A, sites: [start, 9, 25, end]}}
+  - {run: Anchoring, with: {body: B, sites: [start, 9, 25, end]}}
   - {run: Crossing, with: {active: B, target: A, active_base: [0.008, 0.4, 0], target_base: [-0.008, 0.4, 0],
                            height: 0.12, slack: 0.97OFFSET}, timeout: 300}
 """
@@ -292,9 +292,9 @@ fsm:
 
 def test_strands_cross_above_place_bottoms_and_the_hands_take_them_from_there():
     """Two strands standing up from a U (two cloth corners stood up on an object's top, apart), their
-    bottoms given as places 0.1 m up: each bottom is pinched where it is, what earlier hands held between
-    it and the tip (particle 25) is let go, holds below the bottoms stay, and the strands cross above the
-    bottoms, beyond the same bend."""
+    bottoms given as places 0.1 m up (particle 10, not held before): each bottom is pinched where it
+    is, what earlier hands held between it and the tip (particle 25) is let go, holds below the bottoms
+    (particle 9) stay, and the strands cross above the bottoms, beyond the same bend."""
     text = (SIDE_BY_SIDE.replace("OFFSET", "").replace("-0.008", "-0.1").replace("0.008", "0.1"))
     w = _world(text)
     started = False
@@ -310,7 +310,7 @@ def test_strands_cross_above_place_bottoms_and_the_hands_take_them_from_there():
     assert started and w.fsm.succeeded, w.fsm.events
     x = w.record.crossings[("B", "A")]
     assert x[1] > 0.4 + 0.03, x  # above the bottoms (0.4 m)
-    assert w.control.is_driven([0, w.rope("B").start]).all()  # below the bottoms the holds stay
+    assert w.control.is_driven([9, w.rope("B").start + 9]).all()  # below the bottoms the holds stay
 
 
 def test_the_crossing_is_sought_beyond_the_same_bend_from_each_bottom():
@@ -337,8 +337,10 @@ def test_contact_offset_from_a_place_bottom_pinches_the_strand_above_it():
         w.step()
     w.step()
     assert w.control.is_driven([15, w.rope("B").start + 15]).all()  # 5 rods of 0.01 m above particle 10
+    spread = ", contact_offset: 0.05, contact_spread: 0.05"
+    load_level_from_string(SIDE_BY_SIDE.replace("OFFSET", spread))  # from two places: accepted
     with pytest.raises(LevelError, match="contact_spread carries two pinched bottoms apart"):
-        load_level_from_string(SIDE_BY_SIDE.replace("OFFSET", ", contact_spread: 0.05").replace(
+        load_level_from_string(SIDE_BY_SIDE.replace("OFFSET", spread).replace(
             "active_base: [0.008, 0.4, 0]", "active_base: 10"))
 
 

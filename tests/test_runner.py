@@ -166,6 +166,15 @@ def test_bad_follow_exits_2_before_running(tmp_path, opts, message):
     assert not out.exists()
 
 
+def test_follow_takes_a_strand_of_a_rope(tmp_path):
+    """``--follow cord[0:20],cord[20:]`` (two runs of one rope, a self-knot's strands) is accepted."""
+    from sandbox.levels import load_level
+    from sandbox.runner import RunOptions, _follow_problem
+
+    opts = RunOptions(out=tmp_path, follow=["cord[0:20]", "cord[20:]"], frames_every=5)
+    assert _follow_problem(load_level(LEVEL), opts) is None
+
+
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM", "SIGHUP"])
 def test_a_stop_signal_leaves_valid_outputs_and_exits_130(tmp_path, sig):
     """Ctrl-C, SIGTERM or SIGHUP during a run leave status 'interrupted' (naming the signal), a valid

@@ -136,13 +136,14 @@ def _knot(world, of) -> str:
 
 def _touch_measure(world, of, metric: str, measure) -> float:
     """``measure(a, b or None, radius=...)`` of the knot in one rope or between two (ropes or cloth lines; a
-    cloth line's radius is half the cloth's thickness)."""
-    from sandbox.model.strands import parse_cloth_line
+    cloth line's radius is half the cloth's thickness; two lines of one cloth are one curve through its
+    centre, ``joined_at_centre``)."""
+    from sandbox.model.strands import joined_at_centre, parse_cloth_line
 
     names = _bodies(world, of)
     if len(names) not in (1, 2):
         raise ValueError(f"{metric} needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]'")
-    pts = [_strand_points(world, n) for n in names]
+    pts = joined_at_centre(names, [_strand_points(world, n) for n in names])
     radius = max(world.strand(n).radius if parse_cloth_line(n) is not None else world.body_scale(base_name(n))
                  for n in names)
     return measure(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)

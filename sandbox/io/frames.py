@@ -104,20 +104,6 @@ class _Framing:
         return self.camera
 
 
-def _joined(names: list[str], curves: list[np.ndarray]) -> list[np.ndarray]:
-    """Two lines of one cloth that start at the same particle (its centre) as one curve through it: where
-    they meet is their join, not the knot (one curve's touches skip parts of it less than half a turn
-    apart)."""
-    from sandbox.model.strands import parse_cloth_line
-
-    if len(names) != 2:
-        return curves
-    lines = [parse_cloth_line(n) for n in names]
-    if None in lines or lines[0][0] != lines[1][0] or not np.array_equal(curves[0][0], curves[1][0]):
-        return curves
-    return [np.vstack([curves[0][::-1], curves[1][1:]])]
-
-
 class KnotTracker:
     """A point that follows a knot: it moves towards ``knot_centre`` of some ropes
     with time constant ``smoothing`` (s of simulated time), and stays where it is
@@ -142,10 +128,11 @@ class KnotTracker:
     def update(self, sim: Any) -> np.ndarray:
         """The point for the simulation's current state, (3,) m (call once per drawn frame)."""
         from sandbox.geometry.knots import knot_centre
+        from sandbox.model.strands import joined_at_centre
 
         radius = max(float(sim.strand_radius(n)) for n in self.ropes)
         ropes = [np.asarray(sim.strand_positions(n), dtype=np.float64) for n in self.ropes]
-        centre = knot_centre(_joined(self.ropes, ropes), radius=radius)
+        centre = knot_centre(joined_at_centre(self.ropes, ropes), radius=radius)
         now = float(sim.time)
         if self.look is None:
             self.look = np.vstack(ropes).mean(axis=0) if centre is None else centre

@@ -264,10 +264,17 @@ def check_resources(data: Any, limits) -> list[Finding]:
     return out
 
 
+CLOTH_LINE_METRICS = ("knot", "knot_size", "knot_length")
+"""Metrics whose ``of`` may name cloth lines (two lines of one cloth are joined through its centre)."""
+
+
 def check_criteria(
     data: Any, states: Iterable[str], maneuvers: Iterable[str]
 ) -> list[Finding]:
-    """Every name in a criterion's ``of`` must be a body, a state or a maneuver of the level."""
+    """Every name in a criterion's ``of`` must be a body, a state or a maneuver of the level; a cloth line
+    (``F.line1``, ``F.P..Q``) only where the metric reads one (``CLOTH_LINE_METRICS``)."""
+    from sandbox.model.strands import parse_cloth_line
+
     names = scene_names(data)
     states, maneuvers = sorted(states), sorted(maneuvers)
     known = {n for group in names.values() for n in group} | set(states) | set(maneuvers)
@@ -290,15 +297,16 @@ def check_criteria(
         else:
             continue
         for path, target in targets:
-            from sandbox.model.strands import parse_cloth_line
-
             try:
                 line = parse_cloth_line(target) if isinstance(target, str) else None
             except ValueError as exc:
                 out.append(Finding(path, str(exc)))
                 continue
             if line is not None:  # a cloth line F.line1 / F.P..Q: its cloth must exist
-                if line[0] not in names["cloth"]:
+                if item.get("metric") not in CLOTH_LINE_METRICS:
+                    out.append(Finding(path, f"metric {item.get('metric')!r} does not read cloth lines "
+                                             f"({target!r}); those that do: {', '.join(CLOTH_LINE_METRICS)}"))
+                elif line[0] not in names["cloth"]:
                     out.append(Finding(path, f"cloth line {target!r}: unknown cloth {line[0]!r}; cloths: "
                                              f"{', '.join(names['cloth']) or '(none)'}"))
                 continue

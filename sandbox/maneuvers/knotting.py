@@ -19,7 +19,7 @@ import pydantic
 
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.basic import Target, TargetLike, resolve_target
-from sandbox.model.strands import Strand, material_distance
+from sandbox.model.strands import Strand, material_distance, parse_cloth_line, parse_strand
 
 Site = Union[str, int]
 Vec3 = tuple[float, float, float]
@@ -211,7 +211,14 @@ def within_holds(point: np.ndarray, particle: float, holds, rod_length: float, s
 def check_two_strands(params):
     """A Crossing or Winding takes two different strands: a strand crossed with or wound around itself is not
     a knot."""
-    if "".join(params.active.split()) == "".join(params.target.split()):
+    def parsed(name: str):
+        try:
+            line = parse_cloth_line(name)
+            return ("line", *map(repr, line)) if line is not None else ("rope", *parse_strand(name))
+        except ValueError:
+            return name  # reported where the strand is checked
+
+    if parsed(params.active) == parsed(params.target):
         raise ValueError(f"active and target are the same strand {params.active!r}: name two (two ropes, two "
                          "runs of one rope R[i0:i1] for a knot in one rope, or two cloth lines such as "
                          "F.line1 and F.line3)")
@@ -294,7 +301,7 @@ class Crossing(Maneuver):
         tip_t_site = p.target_tip if p.target_tip is not None else "end"
         tip_c_idx = w.site_particles(p.active, p.active_tip)
         tip_t_idx = w.site_particles(p.target, tip_t_site)
-        self.contacts = []  # where each "contact" bottom's rope leaves the knot
+        self.contacts = []  # where each "contact" bottom leaves the knot (or each place bottom is), when pinched
         base_c = self._base(x, self.c, self.t, p.active, p.active_base, p.active_tip, tip_c_idx)
         base_t = self._base(x, self.t, self.c, p.target, p.target_base, tip_t_site, tip_t_idx)
         self.moves = []  # (particle indices, current command, waypoints)
@@ -440,7 +447,8 @@ class Crossing(Maneuver):
 
     def _base(self, x, strand, other, body, site, tip_site, tip_idx) -> np.ndarray | None:
         """Global indices of a strand's bottom point: a site, its far end, the particle nearest a place, or
-        ``"contact"``.
+        ``"contact"``; from a place or a contact, with ``contact_offset``, the particle that far towards the
+        tip, pinched (``_pinch``).
 
         ``"contact"`` is where the strand's rope leaves the knot on its way to
         the tip (``knot_exit`` over the whole ropes): the top of a knot tied

@@ -75,6 +75,21 @@ def parse_cloth_line(ref: str):
                      f"'{cloth}.P..Q' with P, Q a corner A-D, 'center' or '[i, j]'")
 
 
+def joined_at_centre(names: list[str], curves: list[np.ndarray]) -> list[np.ndarray]:
+    """Two lines of one cloth that start at the same particle (its centre) as one curve through it.
+
+    Where they meet is their join, not a knot: measured as one curve, the
+    touches skip parts of it less than half a turn apart. Other names (ropes,
+    lines of two cloths, one name) are returned as they are.
+    """
+    if len(names) != 2:
+        return curves
+    lines = [parse_cloth_line(n) for n in names]
+    if None in lines or lines[0][0] != lines[1][0] or not np.array_equal(curves[0][0], curves[1][0]):
+        return curves
+    return [np.vstack([curves[0][::-1], curves[1][1:]])]
+
+
 def base_name(ref: str) -> str:
     """The rope or cloth a strand belongs to: ``"R[3:9]"`` -> ``"R"``, ``"F.line1"`` -> ``"F"``."""
     return re.split(r"[\[.]", ref, maxsplit=1)[0].strip()
@@ -209,8 +224,10 @@ def gathered_radius(x: np.ndarray, strand: Strand, cloth, x0: np.ndarray, around
     than to the other control lines at rest (for a control line: its
     quadrant's half on its side; for a ``P..Q`` line: the particles within a
     quarter of the line's rest length of it); of those whose nearest point
-    on the line now lies within ``length`` / 2 of ``around`` (along the
-    line), the radius is the 90th percentile of their distances to the line,
+    on the line lies within ``length`` / 2 of ``around`` (along the line),
+    both now and at rest (cloth beside this part of the line in space but
+    far from it in the material is not gathered here), the radius is the
+    90th percentile of their distances to the line,
     plus half the thickness: the bounding tube of the bundle (paper §5.2).
     A flat, ungathered cloth gives the size of its flap; a tight roll, the roll's.
     O(n_cloth x k_line).
