@@ -129,21 +129,13 @@ def _follow_problem(level, opts: RunOptions) -> str | None:
         return "--follow sets the camera of rendered frames: add --frames-every K, --video or --gif"
     if opts.follow_distance is not None and not opts.follow_distance > 0:
         return f"--follow-distance must be > 0 m, got {opts.follow_distance}"
-    from sandbox.model.strands import parse_cloth_line, parse_strand
+    from sandbox.model.strands import names_strand_of
 
     ropes = [r.name for r in level.scene.ropes]
     cloths = [c.name for c in level.scene.cloths]
     if not opts.follow:
         return "--follow-distance needs --follow ROPE[,ROPE...]"
-
-    def known(name: str) -> bool:
-        try:
-            line = parse_cloth_line(name)
-            return parse_strand(name)[0] in ropes if line is None else line[0] in cloths
-        except ValueError:
-            return False
-
-    bad = [n for n in opts.follow if not known(n)]
+    bad = [n for n in opts.follow if not names_strand_of(n, ropes, cloths)]
     if bad:
         return (f"--follow: {', '.join(map(repr, bad))} not a rope or a cloth line of {level.name}; ropes: "
                 f"{', '.join(ropes) or '(none)'}; cloth lines: F.line1-F.line4 or F.P..Q of "

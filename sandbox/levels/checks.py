@@ -100,7 +100,7 @@ def check_sim(data: Any) -> list[Finding]:
 
 def check_camera(data: Any) -> list[Finding]:
     """What a camera follows must be ropes, strands of them or cloth lines of the scene."""
-    from sandbox.model.strands import parse_cloth_line, parse_strand
+    from sandbox.model.strands import names_strand_of
 
     camera = data.get("scene", {}).get("camera") if isinstance(data.get("scene"), dict) else None
     follow = camera.get("follow") if isinstance(camera, dict) else None
@@ -109,20 +109,13 @@ def check_camera(data: Any) -> list[Finding]:
     names = scene_names(data)
     ropes, cloths = names["rope"], names["cloth"]
 
-    def known(name: str) -> bool:
-        try:
-            line = parse_cloth_line(name)
-            return line[0] in cloths if line is not None else parse_strand(name)[0] in ropes
-        except ValueError:
-            return False
-
     return [
         Finding(("scene", "camera", "follow", k),
                 f"the camera follows the knot of ropes or cloth lines: {name!r} is neither; ropes: "
                 f"{', '.join(ropes) or '(none)'} (or R[i0:i1]); cloth lines: F.line1-F.line4 or F.P..Q of "
                 f"{', '.join(cloths) or '(no cloth)'}")
         for k, name in enumerate(follow)
-        if isinstance(name, str) and not known(name)
+        if isinstance(name, str) and not names_strand_of(name, ropes, cloths)
     ]
 
 

@@ -75,6 +75,16 @@ def parse_cloth_line(ref: str):
                      f"'{cloth}.P..Q' with P, Q a corner A-D, 'center' or '[i, j]'")
 
 
+def names_strand_of(name: str, ropes, cloths) -> bool:
+    """Whether ``name`` is a rope of ``ropes``, a strand ``R[i0:i1]`` of one, or a cloth line of a cloth of
+    ``cloths`` (its form only: the grid points of ``F.P..Q`` are checked where the cloth's size is known)."""
+    try:
+        line = parse_cloth_line(name)
+        return parse_strand(name)[0] in ropes if line is None else line[0] in cloths
+    except ValueError:
+        return False
+
+
 def joined_at_centre(names: list[str], curves: list[np.ndarray]) -> list[np.ndarray]:
     """Two lines of one cloth that start at the same particle (its centre) as one curve through it.
 
