@@ -146,7 +146,7 @@ def test_a_ribbon_is_crossed_and_wound_by_its_middle_lines():
     """A 2 cm ribbon (121 x 3 particles) laid over a box, its two halves named as lines of its middle row:
     the Crossing brings them across above the box, and the Winding lays C's particles one at a time
     around the tube of the cloth gathered around T. At every frame the hands hold only the anchored
-    centre and particles of the two lines, and no target lies within the ribbon's radius of the box; the
+    centre and particles of the two lines, and no target lies within a particle's radius of the box; the
     tube's radii are the ribbon's (the 90th percentile of
     its particles' distances across, 1 cm, plus half the 1.5 cm thickness: 1.75 cm), over a part of T
     as long as a turn covers; the laid particles are C's."""
@@ -167,7 +167,7 @@ def test_a_ribbon_is_crossed_and_wound_by_its_middle_lines():
         if m is not None and m.name == "Winding":
             winding = m
             d, _, _ = w.objects.query_numpy(m.targets)
-            assert d.min() >= m.rc - 1e-5, f"frame {w.frame}: a target {d.min():.4f} m from the box"
+            assert d.min() >= m.c.radius - 1e-5, f"frame {w.frame}: a target {d.min():.4f} m from the box"
     assert anchored and winding is not None and winding.k >= 4
     assert winding.rc == pytest.approx(0.0175, abs=5e-4) and winding.rt == pytest.approx(0.0175, abs=5e-4)
     turn = 2 * np.pi * winding.R / np.tan(np.radians(45)) + 4 * winding.R

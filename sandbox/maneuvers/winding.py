@@ -284,9 +284,11 @@ class Winding(Maneuver):
                 t = t - float(t @ self.geodesic.x_hat) * self.geodesic.x_hat
             t /= max(float(np.linalg.norm(t)), 1e-12)
             pts = np.vstack([pts, pts[-1] + np.outer(np.arange(1, m + 1) * self.c.rod_length, t)])
-        # The hand lays each particle at least its radius clear of every object and the ground: where T
+        # The hand lays each particle at least its own radius clear of every object and the ground: where T
         # lies on an object the tube runs into it, and a driven particle there drags the cloth through.
-        return self.world.clear_of_solids(pts, self.rc)
+        # (Its own radius, not a cloth bundle's: the passive cloth around it finds its own way out, and a
+        # wider push would space the targets off one rod, which the held previous particle forbids.)
+        return self.world.clear_of_solids(pts, self.c.radius)
 
     def _particle(self, k: int) -> int:
         return int(self.c.idx[self.i0 + self.params.direction * k])
