@@ -245,7 +245,7 @@ def gathered_radius(x: np.ndarray, strand: Strand, cloth, x0: np.ndarray, around
     from sandbox.geometry.mesh_geodesic import polyline_distance
 
     gi = np.arange(cloth.start, cloth.end)
-    rest_d = polyline_distance(x0[gi], x0[strand.line])
+    rest_d, rest_s = polyline_distance(x0[gi], x0[strand.line], with_arc=True)
     others = [cloth.control_line(k) for k in (1, 2, 3, 4)]
     is_control = any(len(o) == len(strand.line) and np.array_equal(o, strand.line) for o in others)
     if is_control:
@@ -261,7 +261,7 @@ def gathered_radius(x: np.ndarray, strand: Strand, cloth, x0: np.ndarray, around
     # Near ``around`` now and in the material: cloth of the line's other
     # parts that lies beside this one (a flap of the same line folded back
     # over the object) is not gathered here.
-    _, s_rest = polyline_distance(x0[gi[mine]], x0[strand.line], with_arc=True)
+    s_rest = rest_s[mine]
     rest_arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(x0[strand.line], axis=0), axis=1))])
     k0 = int(np.argmin(np.linalg.norm(line - np.asarray(around, float), axis=1)))
     near = (np.abs(s - s0) <= 0.5 * length) & (np.abs(s_rest - rest_arc[k0]) <= 0.5 * length)
