@@ -648,6 +648,40 @@ def test_knot_criterion_reads_the_final_rope():
         METRICS["knot_length"][1](w, ["R", "R", "R"])
 
 
+CROSSED_ON_BOX = """
+version: 1
+name: crossed
+scene:
+  objects:
+    - {name: box, shape: box, params: {size: [0.2, 0.1, 0.2]}, position: [POS]}
+  ropes:
+    - {name: A, points: [[-0.2, 0.116, 0.05], [0.4, 0.116, 0.05]], rod_length: 0.01, radius: 0.005}
+    - {name: B, points: [[0.1, 0.105, -0.3], [0.1, 0.105, 0.3]], rod_length: 0.01, radius: 0.005}
+fsm:
+  - {run: Wait}
+success:
+  - {metric: knot_from_top, of: [A, B, box], max: 0.05}
+"""
+
+
+def test_knot_from_top_measures_from_the_objects_top_site_to_where_the_strands_touch():
+    """Two ropes crossed at (0.1, 0.11, 0.05), one on the other, over a box whose top site is at (0, 0.1, 0):
+    the closed form is |(0.1, 0.05)| (the knot's height does not count); the box moved under the crossing
+    reads 0."""
+    from sandbox.io.criteria import METRICS
+
+    fn = METRICS["knot_from_top"][1]
+    w = _world(CROSSED_ON_BOX.replace("POS", "0, 0, 0"))
+    assert fn(w, ["A", "B", "box"]) == pytest.approx(float(np.hypot(0.1, 0.05)), abs=1e-3)
+    moved = _world(CROSSED_ON_BOX.replace("POS", "0.1, 0, 0.05"))
+    assert fn(moved, ["A", "B", "box"]) == pytest.approx(0.0, abs=1e-3)
+    with pytest.raises(ValueError, match="knot_from_top needs"):
+        fn(w, ["A", "B"])
+    apart = _world(CROSSED_ON_BOX.replace("POS", "0, 0, 0").replace("0.116, 0.05]", "0.3, 0.05]"))
+    with pytest.raises(ValueError, match="touch nowhere"):
+        fn(apart, ["A", "B", "box"])
+
+
 BAD_REFS = """
 version: 1
 name: bad_refs
@@ -753,3 +787,4 @@ def test_a_place_next_to_an_object_moves_and_turns_with_it():
     w.objects.place(k, [0.4, 0.1, 0.3], Rotation.from_euler("y", 180, degrees=True).as_matrix())
     np.testing.assert_allclose(aim(), resolve_target(w, target), atol=1e-6)
     np.testing.assert_allclose(aim(), [0.4 - 0.3, 0.1 + 0.1 + 0.1, 0.3], atol=1e-6)  # top 0.1 above its position
+

@@ -134,19 +134,50 @@ def _knot(world, of) -> str:
     raise ValueError("knot needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]' (a knot between two)")
 
 
-def _touch_measure(world, of, metric: str, measure) -> float:
-    """``measure(a, b or None, radius=...)`` of the knot in one rope or between two (ropes or cloth lines; a
-    cloth line's radius is half the cloth's thickness; two lines of one cloth are one curve through its
-    centre, ``joined_at_centre``)."""
+def _knot_curves(world, names: list[str]) -> tuple[list[np.ndarray], float]:
+    """The curves of a knot in one strand or between two (ropes or cloth lines; two lines of one cloth are one
+    curve through its centre, ``joined_at_centre``), and the radius they touch at (a cloth line's: half the
+    cloth's thickness)."""
     from sandbox.model.strands import joined_at_centre, parse_cloth_line
 
-    names = _bodies(world, of)
-    if len(names) not in (1, 2):
-        raise ValueError(f"{metric} needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]'")
     pts = joined_at_centre(names, [_strand_points(world, n) for n in names])
     radius = max(world.strand(n).radius if parse_cloth_line(n) is not None else world.body_scale(base_name(n))
                  for n in names)
+    return pts, radius
+
+
+def _touch_measure(world, of, metric: str, measure) -> float:
+    """``measure(a, b or None, radius=...)`` of the knot in one rope or between two (``_knot_curves``)."""
+    names = _bodies(world, of)
+    if len(names) not in (1, 2):
+        raise ValueError(f"{metric} needs 'of: rope' (a knot in one rope) or 'of: [rope_a, rope_b]'")
+    pts, radius = _knot_curves(world, names)
     return measure(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
+
+
+def _knot_from_top(world, of) -> float:
+    """Horizontal distance (m) from the knot's centre (the mean of the places where its strands touch) to an
+    object's ``top`` site (where the vertical line through its bounding box's centre leaves it): how far the
+    knot lies from the middle of the top, whatever the knot's height."""
+    from sandbox.geometry.knots import touch_points
+    from sandbox.objects.sites import named_sites
+
+    names = _bodies(world, of)
+    objects = [n for n in names if n in world.object_specs]
+    strands = [n for n in names if n not in world.object_specs]
+    if len(objects) != 1 or len(strands) not in (1, 2):
+        raise ValueError("knot_from_top needs 'of: [rope, object]' (a knot in one rope) or "
+                         "'of: [rope_a, rope_b, object]'")
+    pts, radius = _knot_curves(world, strands)
+    p, _, _ = touch_points(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
+    if not len(p):
+        raise ValueError(f"{' and '.join(strands)} touch nowhere: there is no knot to place")
+    import trimesh
+
+    verts, faces = world.objects.world_mesh(world.object_index(objects[0]))
+    top = named_sites(trimesh.Trimesh(verts, faces, process=False))["top"]
+    off = p.mean(axis=0) - top
+    return float(np.hypot(off[0], off[2]))  # y is up
 
 
 def _knot_size(world, of) -> float:
@@ -263,6 +294,10 @@ METRICS: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
     "knot_length": ("rope held in the knot (m): along each rope, from its first to its last place touching the "
                     "other (or, of one rope, itself); a tight overhand knot in a 12 mm rope holds about 0.2 m, "
                     "a loop never pulled through adds its length; of: R or [A, B]", _knot_length),
+    "knot_from_top": ("horizontal distance (m) from the knot's centre (the mean of the places where its strands "
+                      "touch) to the object's top site: near 0 for a knot tied on the middle of its top, more than "
+                      "the top's half width for one that slid off; of: [R, object] or [A, B, object]",
+                      _knot_from_top),
     "overlap_error": ("largest distance (m) of a wrapped control line's laid particles from its target line "
                       "(offset by half the cloth thickness), of: cloth", _overlap_error),
     "overlap_error_mean": ("mean of the same distances (m), of: cloth", _overlap_error_mean),

@@ -257,7 +257,7 @@ def check_resources(data: Any, limits) -> list[Finding]:
     return out
 
 
-CLOTH_LINE_METRICS = ("knot", "knot_size", "knot_length")
+CLOTH_LINE_METRICS = ("knot", "knot_size", "knot_length", "knot_from_top")
 """Metrics whose ``of`` may name cloth lines (two lines of one cloth are joined through its centre)."""
 
 
