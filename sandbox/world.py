@@ -233,6 +233,15 @@ class World:
             raise KeyError(f"no object named {name!r}; objects: {', '.join(self.object_specs) or '(none)'}")
         return self.objects.index(name)
 
+    def object_sites(self, name: str) -> dict[str, np.ndarray]:
+        """An object's named sites (``sandbox.objects.sites``) at its pose now, world frame (m)."""
+        import trimesh
+
+        from sandbox.objects.sites import named_sites
+
+        verts, faces = self.objects.world_mesh(self.object_index(name))
+        return named_sites(trimesh.Trimesh(verts, faces, process=False))
+
     def site_particles(self, body: str, site) -> np.ndarray:
         """Global particle indices of a named site of a rope or cloth.
 

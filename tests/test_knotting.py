@@ -677,6 +677,10 @@ def test_knot_from_top_measures_from_the_objects_top_site_to_where_the_strands_t
     assert fn(moved, ["A", "B", "box"]) == pytest.approx(0.0, abs=1e-3)
     with pytest.raises(ValueError, match="knot_from_top needs"):
         fn(w, ["A", "B"])
+    with pytest.raises(LevelError) as err:  # caught when the level loads, not after the run
+        load_level_from_string(CROSSED_ON_BOX.replace("POS", "0, 0, 0").replace("of: [A, B, box]", "of: [A, B]"))
+    assert "knot_from_top needs one object and the knot's one or two strands" in str(err.value)
+    assert "objects: box" in str(err.value)
     apart = _world(CROSSED_ON_BOX.replace("POS", "0, 0, 0").replace("0.116, 0.05]", "0.3, 0.05]"))
     with pytest.raises(ValueError, match="touch nowhere"):
         fn(apart, ["A", "B", "box"])

@@ -160,7 +160,6 @@ def _knot_from_top(world, of) -> float:
     object's ``top`` site (where the vertical line through its bounding box's centre leaves it): how far the
     knot lies from the middle of the top, whatever the knot's height."""
     from sandbox.geometry.knots import touch_points
-    from sandbox.objects.sites import named_sites
 
     names = _bodies(world, of)
     objects = [n for n in names if n in world.object_specs]
@@ -172,11 +171,7 @@ def _knot_from_top(world, of) -> float:
     p, _, _ = touch_points(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
     if not len(p):
         raise ValueError(f"{' and '.join(strands)} touch nowhere: there is no knot to place")
-    import trimesh
-
-    verts, faces = world.objects.world_mesh(world.object_index(objects[0]))
-    top = named_sites(trimesh.Trimesh(verts, faces, process=False))["top"]
-    off = p.mean(axis=0) - top
+    off = p.mean(axis=0) - world.object_sites(objects[0])["top"]
     return float(np.hypot(off[0], off[2]))  # y is up
 
 

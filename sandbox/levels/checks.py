@@ -282,6 +282,14 @@ def check_criteria(
     out = []
     for i, item in _items(data, "success"):
         of = item.get("of")
+        if item.get("metric") == "knot_from_top":
+            given = [of] if isinstance(of, str) else of if isinstance(of, list) else []
+            objects = [t for t in given if t in names["object"]]
+            if len(objects) != 1 or len(given) - 1 not in (1, 2):
+                out.append(Finding(("success", i, "of"),
+                                   f"knot_from_top needs one object and the knot's one or two strands, "
+                                   f"of: [R, object] or [A, B, object] (got {of!r}); objects: "
+                                   f"{', '.join(names['object']) or '(none)'}"))
         targets: list[tuple[tuple[Any, ...], Any]]
         if isinstance(of, str):
             targets = [(("success", i, "of"), of)]

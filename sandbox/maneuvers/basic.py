@@ -49,13 +49,8 @@ def resolve_target(world, target: Target) -> np.ndarray:
     if target.point is not None:
         base = np.asarray(target.point, float)
     else:
-        from sandbox.objects.sites import named_sites
-
         k = world.object_index(target.object)
-        verts, faces = world.objects.world_mesh(k)
-        import trimesh
-
-        sites = named_sites(trimesh.Trimesh(verts, faces, process=False))
+        sites = world.object_sites(target.object)
         if target.site not in sites:
             raise ValueError(f"object {target.object!r} has no site {target.site!r}; allowed: {', '.join(sites)}")
         base = np.asarray(sites[target.site], float)
