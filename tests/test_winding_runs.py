@@ -261,6 +261,28 @@ def test_winding_exit_lays_the_tail_straight_out_of_the_turns(square):
     assert rec.max() == m._particle(turns - 1) and rec.min() == m._particle(0)
 
 
+def test_the_hand_takes_the_next_particle_before_it_lets_go_of_the_laid_one():
+    """At every frame of a winding the turn's end is held: the particle laid last, or the one being laid.
+
+    Let go in the frame it is laid, with the next one taken only in the frame after, the end was free for
+    a frame and the tail's weight drew it into T (a tenth of a radius of overlap on the knot levels)."""
+    w = _shipped_world("rope_wind.yaml", {"fsm.1.timeout": 300})
+    checked, laid_held, wound = 0, 0, None
+    while w.fsm.state != "2:Wait" and not w.fsm.finished:
+        w.step()
+        m = w.fsm._maneuver if w.fsm.state == "1:Winding" else None
+        wound = m or wound
+        if m is not None and 1 <= m.k < m.n:
+            laid, current = w.control.is_driven([m._particle(m.k - 1), m._particle(m.k)])
+            assert laid or current, (w.frame, m.k)
+            checked += 1
+            laid_held += int(laid and not current)
+    assert w.fsm.state == "2:Wait" and checked > 20
+    assert laid_held >= 2  # the hand-over frames themselves were seen
+    last = [wound._particle(wound.n - 2), wound._particle(wound.n - 1)]
+    assert w.control.is_driven(last).tolist() == [False, True]  # once done, only the last laid particle is held
+
+
 @pytest.mark.slow  # the default run checks the pinch in test_knot_reach and its absence in the exit test
 def test_winding_pinch_holds_the_crossing_until_the_end():
     _, m, held_midway = _wind({"pinch": True})

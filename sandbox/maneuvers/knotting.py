@@ -371,6 +371,17 @@ class Crossing(Maneuver):
         for k, (idx, pos, ways) in enumerate(self.moves):
             clearance = float(w.model.data.radius[np.atleast_1d(idx)].max())
             self.moves[k] = (idx, pos, list(w.clear_of_solids(np.array(ways), clearance)))
+        if spread:
+            # A bottom carried apart ends where its last waypoint now is (taken clear of solids, kept within
+            # reach of other holds), which may be a centimetre or more from where its tip's waypoints were
+            # planned around: a tail drawn taut from its pinched bottom snaps the fold beside the pinch into the
+            # other rope (0.3 radius of overlap, 25 % strain in one frame). The tips' waypoints are kept within
+            # reach of that end.
+            for k in range(len(plans)):
+                idx, pos, ways = self.moves[k]
+                end = self.moves[len(plans) + k][2][-1]
+                self.moves[k] = (idx, pos, [_within(q, end, max(reach[k], float(np.linalg.norm(pos - end))))
+                                            for q in ways])
         self.total = sum(float(np.linalg.norm(np.diff(np.vstack([m[1], *m[2]]), axis=0), axis=1).sum())
                          for m in self.moves) or 1.0
         self.travelled = 0.0

@@ -115,6 +115,7 @@ class Winding(Maneuver):
         self.straight = self._straighten(xt) if p.straighten > 0 else np.zeros(0, np.int64)
         self.xt_traced = xt.astype(np.float64).copy()
         self.k = 0
+        self.laid_held: int | None = None  # the particle laid last frame, held until its successor is taken
         self.tick_in_particle = 0
         self.best_miss, self.stuck = np.inf, 0  # closest the current particle came to its target; frames since
         self.off_target: list[float] = []  # how far short each particle laid out of reach stayed (m)
@@ -314,6 +315,7 @@ class Winding(Maneuver):
             # go back to the first particle that slipped and lay the turns again from there, rather than
             # finish a winding that is not there.
             w.control.release([self._particle(self.k)])  # k >= 2 here: never the pinched crossing particle
+            self._hand_over(None)
             self.k = slip
             self.relaid += 1
             self._notes()
@@ -323,6 +325,7 @@ class Winding(Maneuver):
             self.pos = w.positions()[self._particle(self.k)].astype(np.float64)
         idx = self._particle(self.k)
         target = self.targets[min(self.k, self.n - 1)]
+        self._hand_over(idx)
         step = p.speed / w.fps
         d = target - self.pos
         dist = float(np.linalg.norm(d))
@@ -359,7 +362,9 @@ class Winding(Maneuver):
             self._notes()
         if out_of_reach or (miss <= p.tolerance * self.c.rod_length and dist <= step):
             if self.k + 1 < self.n and not (p.pinch and self.k == 0):
-                w.control.release([idx])  # only the current particle is held; the last one stays held
+                # Only the current particle is held (the last one stays held): this one is let go once the
+                # next is taken, in the next frame (``_hand_over``).
+                self.laid_held = idx
             self.k += 1
             self.tick_in_particle = 0
             self.best_miss, self.stuck = np.inf, 0
@@ -370,12 +375,25 @@ class Winding(Maneuver):
         elif self.tick_in_particle > MAX_TICKS_PER_PARTICLE:
             self.message = f"particle {idx} did not reach its target within {MAX_TICKS_PER_PARTICLE} frames"
             w.control.release([idx])
+            self._hand_over(None)
             return Status.FAILED
         self.progress = self.k / max(self.n, 1)
         if self.k >= self.n:
             self.progress = 1.0
             return Status.DONE
         return Status.RUNNING
+
+    def _hand_over(self, taken: int | None) -> None:
+        """Let go of the particle laid last frame, now that the hand takes ``taken`` (None: nothing).
+
+        A hand takes the next particle before it lets go of the one it laid: let go in the frame it is
+        laid, the turn's end would be free for a frame, with the next particle not yet driven, and the
+        tail's weight would draw it into T (a spike of a tenth of a radius of overlap). Held for one
+        frame only: a hold that stays while T moves on would unwind the turn.
+        """
+        if self.laid_held is not None and self.laid_held != taken:
+            self.world.control.release([self.laid_held])
+        self.laid_held = None
 
     def _around(self, start: np.ndarray, goal: np.ndarray, step: float) -> np.ndarray:
         """A step of at most ``step`` from ``start`` towards ``goal`` over the tube's surface, the shorter way
@@ -487,6 +505,7 @@ class Winding(Maneuver):
         # that the winding keeps its shape until a Tightening or Release. On
         # a T that a scripted motion carries, the hold rides on T: held still,
         # it would unwind the turns as T moves away.
+        self._hand_over(None)
         if self.k < self.n:
             self.world.control.release([self._particle(self.k)])
         elif self.t.body in self.world.carried_ropes:
