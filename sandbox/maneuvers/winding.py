@@ -375,7 +375,6 @@ class Winding(Maneuver):
         elif self.tick_in_particle > MAX_TICKS_PER_PARTICLE:
             self.message = f"particle {idx} did not reach its target within {MAX_TICKS_PER_PARTICLE} frames"
             w.control.release([idx])
-            self._hand_over(None)
             return Status.FAILED
         self.progress = self.k / max(self.n, 1)
         if self.k >= self.n:
