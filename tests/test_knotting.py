@@ -686,6 +686,17 @@ def test_knot_from_top_measures_from_the_objects_top_site_to_where_the_strands_t
         fn(apart, ["A", "B", "box"])
 
 
+def test_knot_centre_is_the_middle_of_where_the_strands_touch():
+    """Two ropes crossed one on the other at (0.1, 0.05) in plan, their axes at heights 0.116 and 0.105: they
+    touch at the middle of the two axes' closest points, (0.1, 0.1105, 0.05); ropes apart touch nowhere."""
+    from sandbox.io.criteria import knot_centre
+
+    w = _world(CROSSED_ON_BOX.replace("POS", "0, 0, 0"))
+    np.testing.assert_allclose(knot_centre(w, ["A", "B"]), [0.1, 0.1105, 0.05], atol=1e-3)
+    apart = _world(CROSSED_ON_BOX.replace("POS", "0, 0, 0").replace("0.116, 0.05]", "0.3, 0.05]"))
+    assert knot_centre(apart, ["A", "B"]) is None
+
+
 BAD_REFS = """
 version: 1
 name: bad_refs

@@ -379,6 +379,40 @@ def test_peers_cloth_measures_stretch_and_depth_in_closed_form():
     assert pc.depth(pts[1:], 1) == pytest.approx(0.002)
 
 
+CROSSED_FALLING = """
+version: 1
+name: crossed_falling
+scene:
+  ropes:
+    - {name: A, points: [[-0.3, 1.011, 0.05], [0.3, 1.011, 0.05]], rod_length: 0.02, radius: 0.005, damping: 0.0}
+    - {name: B, points: [[0.0, 1.0, -0.3], [0.0, 1.0, 0.3]], rod_length: 0.02, radius: 0.005, damping: 0.0}
+sim: {fps: 60, substeps: 4, frames: 6}
+fsm:
+  - {run: Wait, with: {seconds: 0.05}}
+success:
+  - {metric: knot, of: [A, B], equals: unknot}
+"""
+
+
+def test_hold_rest_measures_how_far_a_knot_moves_while_held(tmp_path, monkeypatch):
+    """Two crossed ropes fall together, one on the other, from rest: the place where they touch falls
+    g (t1^2 - t0^2) / 2 between the FSM's end t0 and the hold's end t1 (closed form), straight down."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import hold_rest
+
+    level = tmp_path / "crossed.yaml"
+    level.write_text(CROSSED_FALLING)
+    monkeypatch.setattr(sys, "argv", ["hold_rest.py", str(level), "--seconds", "0.25", "--out", str(tmp_path / "o")])
+    hold_rest.main()
+    r = json.loads((tmp_path / "o" / "hold.json").read_text())
+    t0, t1 = r["fsm_end"]["frame"] / 60.0, r["frames"][-1]["time"]
+    start, end = r["fsm_end"]["knot_centre"]["['A', 'B']"], r["frames"][-1]["knot_centre"]["['A', 'B']"]
+    fall = 0.5 * 9.81 * (t1**2 - t0**2)
+    np.testing.assert_allclose(np.subtract(start, end), [0.0, fall, 0.0], atol=0.05 * fall)
+    drift = r["knot_drift"]["['A', 'B']"]
+    assert drift["final"] == pytest.approx(fall, rel=0.05) and drift["largest"] == pytest.approx(drift["final"])
+
+
 def test_hold_rest_holds_the_end_state_and_records_every_frame(tmp_path, monkeypatch):
     """tools/hold_rest.py runs a level to its FSM's end (here: its frame count) and then holds it."""
     sys.path.insert(0, str(ROOT / "tools"))

@@ -155,23 +155,30 @@ def _touch_measure(world, of, metric: str, measure) -> float:
     return measure(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
 
 
-def _knot_from_top(world, of) -> float:
-    """Horizontal distance (m) from the knot's centre (the mean of the places where its strands touch) to an
-    object's ``top`` site (where the vertical line through its bounding box's centre leaves it): how far the
-    knot lies from the middle of the top, whatever the knot's height."""
+def knot_centre(world, strands: list[str]) -> np.ndarray | None:
+    """Where the knot in one strand, or between two, lies now: the mean of the places where its strands touch
+    (``touch_points``), world frame (m), float64; None where they touch nowhere."""
     from sandbox.geometry.knots import touch_points
 
+    pts, radius = _knot_curves(world, list(strands))
+    p, _, _ = touch_points(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
+    return p.mean(axis=0) if len(p) else None
+
+
+def _knot_from_top(world, of) -> float:
+    """Horizontal distance (m) from the knot's centre (``knot_centre``) to an object's ``top`` site (where the
+    vertical line through its bounding box's centre leaves it): how far the knot lies from the middle of the
+    top, whatever the knot's height."""
     names = _bodies(world, of)
     objects = [n for n in names if n in world.object_specs]
     strands = [n for n in names if n not in world.object_specs]
     if len(objects) != 1 or len(strands) not in (1, 2):
         raise ValueError("knot_from_top needs 'of: [rope, object]' (a knot in one rope) or "
                          "'of: [rope_a, rope_b, object]'")
-    pts, radius = _knot_curves(world, strands)
-    p, _, _ = touch_points(pts[0], pts[1] if len(pts) == 2 else None, radius=radius)
-    if not len(p):
+    centre = knot_centre(world, strands)
+    if centre is None:
         raise ValueError(f"{' and '.join(strands)} touch nowhere: there is no knot to place")
-    off = p.mean(axis=0) - world.object_sites(objects[0])["top"]
+    off = centre - world.object_sites(objects[0])["top"]
     return float(np.hypot(off[0], off[2]))  # y is up
 
 
