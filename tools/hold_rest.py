@@ -72,13 +72,18 @@ def _centres(world, knots: dict[str, list[str]]) -> dict[str, list[float] | None
     return out
 
 
+def _moved(c0: list[float] | None, rows: list[dict], key: str) -> list[tuple[float, float]]:
+    """(time, distance in m of knot ``key``'s centre from ``c0``) over the frames where both are known."""
+    return [(r["time"], float(np.linalg.norm(np.subtract(r["knot_centre"][key], c0))))
+            for r in rows if c0 is not None and r["knot_centre"].get(key) is not None]
+
+
 def knot_drift(start: dict, rows: list[dict]) -> dict[str, dict]:
     """How far each knot moved while held: the largest and the final distance (m) of its centre from where it
     was when the FSM ended (``start``), over the frames where both are known."""
     out = {}
     for key, c0 in start.items():
-        d = [float(np.linalg.norm(np.subtract(r["knot_centre"][key], c0)))
-             for r in rows if c0 is not None and r["knot_centre"].get(key) is not None]
+        d = [m for _, m in _moved(c0, rows, key)]
         out[key] = {"largest": max(d) if d else None, "final": d[-1] if d else None}
     return out
 
@@ -157,10 +162,9 @@ def _plot(rows: list[dict], start: dict, path: pathlib.Path, title: str) -> None
     ax[1].set_ylabel("particle speed (m/s)")
     ax[1].legend()
     for key, c0 in start.items():
-        pts = [(r["time"], 1e3 * float(np.linalg.norm(np.subtract(r["knot_centre"][key], c0))))
-               for r in rows if c0 is not None and r["knot_centre"].get(key) is not None]
+        pts = _moved(c0, rows, key)
         if pts:
-            ax[2].plot(*zip(*pts), label=f"knot {key}")
+            ax[2].plot([t for t, _ in pts], [1e3 * m for _, m in pts], label=f"knot {key}")
     ax[2].set_xlabel("time (s)")
     ax[2].set_ylabel("knot centre moved since the FSM ended (mm)")
     if start:
