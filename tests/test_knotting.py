@@ -489,26 +489,6 @@ def test_tightening_by_force_ends_once_the_pull_stalls():
     assert float(np.linalg.norm(x[-1] - x[0])) == pytest.approx(length, rel=0.03)  # as straight as the pull makes it
 
 
-def test_tightening_hold_pull_keeps_pulling_after_it_is_tight():
-    """``hold: pull``: once tight the end stays pulled (not held), so it still gives and takes with the rope."""
-    w = _world(SLACK_PULL.replace("distance: 0.5", "distance: 0.5, hold: pull"))
-    n = len(w.rope_positions("R"))
-    for _ in range(900):
-        w.step()
-        if w.fsm.finished:
-            break
-    assert w.fsm.succeeded, w.fsm.events
-    assert w.control.is_pulled([n - 1]).all() and not w.control.is_driven([n - 1]).any()
-    end = w.rope_positions("R")[-1].copy()
-    for _ in range(30):
-        w.step()
-    x = w.rope_positions("R")
-    # Still balanced where the pull left it: the same end, within a few mm, and the rope at its length.
-    assert np.linalg.norm(x[-1] - end) < 0.005
-    seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
-    assert np.abs(seg / 0.02 - 1).max() < 0.01
-
-
 def test_tightening_pull_with_its_own_force_hangs_at_that_force():
     """A pull's own ``force`` replaces the Tightening's: the rope hangs at tan(phi) = W / (2F) for that F.
 
@@ -563,11 +543,6 @@ def test_tightening_pull_force_or_distance_needs_a_tightening_by_force():
     with pytest.raises(LevelError, match=r"pulls \[0\] set their own force or distance"):
         load_level_from_string(SLACK_PULL.replace("force: 1.0, ", "").replace(
             "direction: [1, 0, 0]", "direction: [1, 0, 0], distance: 0.1"))
-
-
-def test_tightening_hold_pull_needs_a_force():
-    with pytest.raises(LevelError, match="hold: pull keeps pulling"):
-        load_level_from_string(SLACK_PULL.replace("force: 1.0, ", "").replace("distance: 0.5", "distance: 0.5, hold: pull"))
 
 
 TOUCHING = """

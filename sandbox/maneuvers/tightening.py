@@ -76,16 +76,9 @@ class TighteningParams(Params):
     stall_frames: Annotated[int, pydantic.Field(ge=1)] = 45  # frames without growth that make a forced pull tight (see ``stall``)
     distance: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m, most an end is pulled
     max_strain: Annotated[float, pydantic.Field(gt=0)] = 0.003  # rod strain that means "tight"
-    # What the hands do once done, with ``force``: "fixed" holds the ends where
-    # they stopped; "pull" keeps pulling, so the hands' give (the drag) takes up
-    # the energy of a knot that jitters under tension instead of reflecting it.
-    hold: Literal["fixed", "pull"] = "fixed"
 
     @pydantic.model_validator(mode="after")
     def _pull_needs_force(self):
-        if self.hold == "pull" and self.force is None:
-            raise ValueError("hold: pull keeps pulling with the Tightening's force: set force (N), "
-                             "or use hold: fixed")
         if self.force is None:
             bad = [k for k, q in enumerate(self.pulls) if q.force is not None or q.distance is not None]
             if bad:
@@ -116,7 +109,7 @@ class Tightening(Maneuver):
     ``SETTLE_FRAMES`` frames, or when the farthest pull has not grown by
     ``stall`` for ``stall_frames`` frames (the force, not ``max_strain`` or
     the overlap, bounds how hard the rope is pulled); the ends are then
-    held where they are (``hold: fixed``) or kept pulled (``hold: pull``).
+    held where they are.
     A pull may set its own ``force``, and its own ``distance``: that end is
     held once it is that far from where it started (a standing part that a
     cloth draws taut gives its slack, and no more), while the others pull on.
@@ -283,8 +276,7 @@ class Tightening(Maneuver):
         # The force bounds the tension: the knot is as tight as this pull makes it once the ends stop.
         tight = self.still >= SETTLE_FRAMES or self.stalled >= p.stall_frames
         if tight or self.pulled >= p.distance:
-            if p.hold == "fixed":
-                self._hold_ends(x)
+            self._hold_ends(x)
             self.tight = tight
             self.progress = 1.0
             return Status.DONE
@@ -325,7 +317,7 @@ class Tightening(Maneuver):
         return Status.RUNNING
 
     def stop(self) -> None:
-        """The pushing hand lets go once the knot is tight (the pulled ends stay as ``hold`` says)."""
+        """The pushing hand lets go once the knot is tight (the pulled ends stay held)."""
         pushed = getattr(self, "pushed", np.zeros(0, np.int64))
         if len(pushed):
             self.world.control.release(pushed)
