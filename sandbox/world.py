@@ -20,17 +20,6 @@ from sandbox.model.pose import euler_matrix, keyframe_pose
 from sandbox.record import ManeuverRecord
 
 
-def _rod_frame(direction: np.ndarray, e2_prev: np.ndarray | None):
-    """Orthonormal frame (e1 along the rod, e2, e3); e2 is the previous e2 made normal (no twist)."""
-    e1 = direction / max(np.linalg.norm(direction), 1e-12)
-    ref = e2_prev if e2_prev is not None else (np.array([0.0, 1.0, 0.0]) if abs(e1[1]) < 0.9 else np.array([1.0, 0.0, 0.0]))
-    e2 = ref - (ref @ e1) * e1
-    if np.linalg.norm(e2) < 1e-9:
-        e2 = np.cross(e1, [0.0, 0.0, 1.0])
-    e2 /= np.linalg.norm(e2)
-    return e1, e2, np.cross(e1, e2)
-
-
 SUBSTEP_TRAVEL = 0.25
 # Frames between two counts of cloth through cloth (``ClothCrossings``).
 CROSSINGS_EVERY = 5
@@ -119,8 +108,8 @@ class World:
         # Ropes whose pins follow a script: (motion, pin indices, initial pin positions).
         self.rope_motions = []
         self.attachments: list[dict] = []  # held particles that ride on a rope (see attach)
-        self.carried_ropes = {spec.name for spec in scene.ropes if spec.motion is not None}
-        """Ropes whose pins a scripted motion carries: a hold placed relative to one rides on it."""
+        self.carried_ropes = {spec.name: spec.motion for spec in scene.ropes if spec.motion is not None}
+        """Ropes whose pins a scripted motion carries, and that motion: a hold placed relative to one rides on it."""
         for spec, rng in zip(scene.ropes, self.data.ropes):
             if spec.motion is not None:
                 pins = self.data.pins[(self.data.pins >= rng.start) & (self.data.pins < rng.end)]
@@ -542,34 +531,32 @@ class World:
         return tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
 
     def attach(self, particle: int, rope: str) -> None:
-        """Keep a held particle's target fixed relative to the nearest rod of a rope, as that rope moves.
+        """Let a held particle ride on a rope that a scripted motion carries: its target moves with that motion.
 
-        The offset is stored in a frame of the rod (its direction and a normal
-        carried along without twist, rotation-minimising from frame to frame);
-        each frame the particle is driven to the same offset. The attachment
-        ends when a maneuver releases the particle.
+        The particle's place is stored in the motion's frame now; each frame it
+        is driven to that place under the motion's pose, as the rope's pins are.
+        It rides on the motion, not on the rope's rods: a target carried by the
+        rod it holds on to pushes that rod, which carries the target on, and
+        the loop ran away (a wound turn's end thrown at 27 m/s). The
+        attachment ends when a maneuver releases the particle.
         """
-        x = self.positions().astype(np.float64)
-        xr = self.rope_positions(rope).astype(np.float64)
-        p = x[particle]
-        seg = np.diff(xr, axis=0)
-        t = np.clip(np.einsum("ij,ij->i", p - xr[:-1], seg) / np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-18), 0, 1)
-        j = int(np.argmin(np.linalg.norm(xr[:-1] + t[:, None] * seg - p, axis=1)))
-        e1, e2, e3 = _rod_frame(seg[j], None)
-        local = np.array([(p - xr[j]) @ e for e in (e1, e2, e3)])
+        motion = self.carried_ropes.get(rope)
+        if motion is None:
+            carried = ", ".join(sorted(self.carried_ropes)) or "(none)"
+            raise ValueError(f"attach: rope {rope!r} is not carried by a motion; carried ropes: {carried}")
+        pos, rot = keyframe_pose(motion, self.time)
+        local = (self.positions()[particle].astype(np.float64) - pos) @ rot
         self.attachments = [a for a in self.attachments if a["particle"] != particle]
-        self.attachments.append({"particle": int(particle), "rope": rope, "rod": j, "local": local, "e2": e2})
+        self.attachments.append({"particle": int(particle), "rope": rope, "local": local})
 
     def _follow_attachments(self) -> None:
+        """Drive each attached particle to its place under its carrier's pose at the end of the coming frame."""
         kept = []
         for a in self.attachments:
             if not self.control.is_driven([a["particle"]])[0]:
                 continue  # released: the attachment ends
-            xr = self.rope_positions(a["rope"]).astype(np.float64)
-            j = a["rod"]
-            e1, e2, e3 = _rod_frame(xr[j + 1] - xr[j], a["e2"])
-            a["e2"] = e2
-            self.control.drive([a["particle"]], (xr[j] + a["local"] @ np.stack([e1, e2, e3]))[None])
+            pos, rot = keyframe_pose(self.carried_ropes[a["rope"]], self.time + self.dt)
+            self.control.drive([a["particle"]], (rot @ a["local"] + pos)[None])
             kept.append(a)
         self.attachments = kept
 

@@ -133,8 +133,12 @@ def test_rope_motion_needs_pins():
         load_level_from_string(MOVING.replace("      pins: [start, end]\n", ""), base_dir=ROOT / "levels")
 
 
-def test_an_attached_particle_keeps_its_place_on_a_moving_rope():
-    """World.attach: the held particle keeps its offset in the frame of the nearest rod of T."""
+def test_an_attached_particle_rides_on_the_motion_that_carries_its_rope():
+    """World.attach: the held particle keeps its place in the frame of the motion that carries T (the closed
+    form of the pins' pose: at t = 1 s, turned 90 degrees about y and moved (0, 0.1, 0.2)), whatever T's own
+    rods do; released, it is no longer attached. A rope no motion carries cannot be ridden on."""
+    from sandbox.model.pose import euler_matrix
+
     text = MOVING.replace("""    - name: T""", """    - name: C
       points: [[0.0, 0.52, 0], [0.0, 0.9, 0]]
       rod_length: 0.02
@@ -143,24 +147,22 @@ def test_an_attached_particle_keeps_its_place_on_a_moving_rope():
     - name: T""")
     w = _world(text)
     c0 = w.site_particles("C", "start")[0]
+    p0 = w.positions()[c0].astype(np.float64)
     w.attach(c0, "T")
-    a = w.attachments[0]
     for _ in range(60):
-        xr = w.rope_positions("T").astype(float)  # targets follow T as it was when the frame began
         w.step()
-    # T was carried and turned by 90 degrees: in the frame of the rod the offset is unchanged.
-    e1 = xr[a["rod"] + 1] - xr[a["rod"]]
-    e1 /= np.linalg.norm(e1)
-    frame = np.stack([e1, a["e2"], np.cross(e1, a["e2"])])
-    np.testing.assert_allclose(frame @ (w.positions()[c0] - xr[a["rod"]]), a["local"], atol=1e-4)
-    assert abs(e1[2]) > 0.99  # the rod really turned from x to z
+    want = euler_matrix([0, 90, 0]) @ p0 + [0, 0.1, 0.2]
+    np.testing.assert_allclose(w.control.target([c0])[0], want, atol=1e-6)
+    np.testing.assert_allclose(w.positions()[c0], want, atol=1e-5)
     w.control.release([c0])
     w.step()
     assert not w.attachments  # a released particle is no longer attached
+    with pytest.raises(ValueError, match=r"rope 'C' is not carried by a motion; carried ropes: T"):
+        w.attach(c0, "C")
 
 
 def test_a_winding_around_a_carried_rope_rides_on_it():
-    """Once wound around a T that a motion carries, the last wound particle's hold rides on T (World.attach);
+    """Once wound around a T that a motion carries, the last wound particle's hold rides on T's motion (World.attach);
     around a T that stays (test_winding_exit_...), the hold stays where it was laid."""
     motion = {"keyframes": [{"time": 0.0, "position": [0, 0, 0]}, {"time": 4.0, "position": [0, 0, 0.04]}]}
     w, m, _ = _wind({}, overrides={"scene.ropes.0.motion": motion})
