@@ -337,8 +337,7 @@ class World:
         for motion, pins, rest in self.rope_motions:
             held = self.control.is_driven(pins)
             if held.any():
-                pos, rot = keyframe_pose(motion, self.time + self.dt)
-                self.control.drive(pins[held], rest[held] @ rot.T + pos)
+                self._drive_carried(motion, pins[held], rest[held])
         snap = self.state.save()
         obj_snap = [self.objects.pose(k) for k in self.moving] if self.moving else []
         substeps = self.frame_substeps(snap[1])
@@ -555,10 +554,15 @@ class World:
         for a in self.attachments:
             if not self.control.is_driven([a["particle"]])[0]:
                 continue  # released: the attachment ends
-            pos, rot = keyframe_pose(self.carried_ropes[a["rope"]], self.time + self.dt)
-            self.control.drive([a["particle"]], (rot @ a["local"] + pos)[None])
+            self._drive_carried(self.carried_ropes[a["rope"]], [a["particle"]], a["local"][None])
             kept.append(a)
         self.attachments = kept
+
+    def _drive_carried(self, motion, idx, local: np.ndarray) -> None:
+        """Drive particles ``idx`` to their places ``local`` (m, in the motion's frame) under the motion's pose
+        at the end of the coming frame: a rope's pins, and the holds that ride on it."""
+        pos, rot = keyframe_pose(motion, self.time + self.dt)
+        self.control.drive(idx, local @ rot.T + pos)
 
     def body_scale(self, name: str) -> float:
         """Length scale of a body for relative penetration: rope radius or cloth thickness (m)."""
