@@ -11,6 +11,7 @@ from sandbox.levels import LevelError, load_level_from_string
 from sandbox.maneuvers.knotting import closest_approach, crossing_targets, knot_exit
 from sandbox.model.strands import parse_strand
 from sandbox.maneuvers.tightening import SETTLE_FRAMES
+from sandbox.model.model import GRIP_GIVE
 from sandbox.record import WindingRecord
 
 import sandbox.maneuvers  # noqa: F401
@@ -433,9 +434,12 @@ def test_tightening_by_force_pulls_until_the_rope_stops_then_holds():
     assert phi == pytest.approx(np.degrees(np.arctan(0.05 * 9.81 / 2.0)), abs=1.5)
     seg = np.linalg.norm(np.diff(x, axis=0), axis=1)
     assert np.abs(seg / 0.02 - 1).max() < 0.01
+    assert w.control.is_gripped([n - 1]).all()  # the pulling hand grips it: it gives, the kept hand does not
     for _ in range(30):
         w.step()
-    np.testing.assert_allclose(w.rope_positions("R")[[0, -1]], x[[0, -1]], atol=1e-6)
+    x1 = w.rope_positions("R")
+    np.testing.assert_allclose(x1[0], x[0], atol=1e-6)
+    assert np.linalg.norm(x1[-1] - x[-1]) < GRIP_GIVE  # pulled on as hard as before, it stays within the grip's give
 
 
 def _heads_toward(w, goal: np.ndarray) -> np.ndarray:
@@ -534,7 +538,7 @@ def test_tightening_pull_with_its_own_distance_is_held_there_while_the_others_pu
     moved = float(np.linalg.norm(held_at - start))
     assert 0.03 <= moved < 0.03 + 1.05 * 0.2 / 60  # held within one frame's travel past its distance
     x = w.rope_positions("R")
-    np.testing.assert_allclose(x[0], held_at, atol=1e-6)  # and stayed there
+    np.testing.assert_allclose(x[0], held_at, atol=1e-6)  # and stayed there: its slack is used up
     length = 0.02 * (n - 1)
     assert 0.97 * length < float(np.linalg.norm(x[-1] - x[0])) <= 1.005 * length  # the end pulled on until straight
 

@@ -10,6 +10,7 @@ import pytest
 
 from sandbox.api import Sandbox
 from sandbox.levels import load_level_from_string
+from sandbox.model.model import GRIP_GIVE
 from sandbox.world import SimulationUnstable
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -210,6 +211,46 @@ def test_rod_pulled_at_one_end_moves_as_one_body():
     x = sim.rope_positions("rod")
     assert abs(float(np.linalg.norm(x[1] - x[0])) - 0.1) < 1e-4  # the rod holds
     np.testing.assert_allclose(sim.world.velocities()[:, 0], u, rtol=1e-3)
+
+
+@pytest.mark.parametrize("solver", ["xpbd", "projection"])
+@pytest.mark.parametrize("hold", [True, False])
+def test_gripped_rod_hangs_within_the_grip_or_slips_at_the_closed_form_speed(solver, hold):
+    """A hanging rod (weight W = 2 m g) gripped at its top (``Control.grip``: a spring of F / GRIP_GIVE back to
+    its place, at most F, and a drag b).
+
+    F = 2 W holds it: at rest the spring carries W, so the top hangs W GRIP_GIVE / F = GRIP_GIVE / 2 below its
+    place (XPBD; the reference projection has no masses: within the give). F = W / 2 lets it slip: the rod
+    falls as one body under W - F - b v, at the terminal speed (W - F) / b (XPBD; the projection, 17 %
+    faster).
+    """
+    text = _rod_level((0.0, 0.5, 0.0), (0.0, 0.4, 0.0), fps=60, substeps=10)
+    sim = _sandbox(text.replace("iterations: 1,", f"iterations: 1, solver: {solver},"))
+    m = 1.0 / float(sim.world.data.inv_mass[0])
+    w_rod = 2.0 * m * G
+    top = sim.rope_positions("rod")[0].astype(np.float64)
+    f = 2.0 * w_rod if hold else 0.5 * w_rod
+    b = f / 0.2 if hold else 2.0 * m / 0.02  # N s/m: the spring's motion dies out in 0.1 s; terminal in 0.1 s
+    sim.world.control.grip([0], top[None], f, b)
+    assert sim.world.control.is_gripped([0]).all() and sim.world.control.is_driven([0]).all()
+    for _ in range(60):
+        sim.step()
+    x = sim.rope_positions("rod").astype(np.float64)
+    v = sim.world.velocities()
+    if hold:
+        drop = top[1] - x[0, 1]
+        if solver == "xpbd":
+            assert drop == pytest.approx(0.5 * GRIP_GIVE, rel=0.02)
+        assert 0.0 < drop < GRIP_GIVE
+        assert np.abs(v).max() < 1e-3
+    else:
+        vt = (w_rod - f) / b
+        if solver == "xpbd":
+            np.testing.assert_allclose(v[:, 1], -vt, rtol=0.02)
+        else:  # no masses in the projection: the free end does not drag the gripped one as a body would
+            assert np.all((-v[:, 1] > vt) & (-v[:, 1] < 1.25 * vt))
+            assert abs(float(v[0, 1] - v[1, 1])) < 1e-4
+        assert abs(float(np.linalg.norm(x[1] - x[0])) - 0.1) < 1e-3  # the rod holds while it slips
 
 
 def test_simple_pendulum_period():

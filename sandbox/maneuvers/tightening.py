@@ -17,6 +17,7 @@ import pydantic
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
 from sandbox.maneuvers.basic import TargetLike, follow_target
 from sandbox.maneuvers.knotting import _UP, Site, Vec3, _unit
+from sandbox.model.model import GRIP_GIVE
 from sandbox.model.strands import base_name
 
 
@@ -109,10 +110,14 @@ class Tightening(Maneuver):
     ``SETTLE_FRAMES`` frames, or when the farthest pull has not grown by
     ``stall`` for ``stall_frames`` frames (the force, not ``max_strain`` or
     the overlap, bounds how hard the rope is pulled); the ends are then
-    held where they are.
+    held where they are by hands that keep pulling as hard as they pulled
+    but move no further (``Control.grip``): a knot drawn tighter than that
+    slips through them instead of snapping through itself against hands
+    that cannot give.
     A pull may set its own ``force``, and its own ``distance``: that end is
     held once it is that far from where it started (a standing part that a
-    cloth draws taut gives its slack, and no more), while the others pull on.
+    cloth draws taut gives its slack, and no more), while the others pull on;
+    it stays held there firmly.
     """
 
     name = "Tightening"
@@ -238,9 +243,20 @@ class Tightening(Maneuver):
         return strain, overlap
 
     def _hold_ends(self, x: np.ndarray) -> None:
-        """Hold every pulled end where it is now."""
-        for idx, _, _ in self.ends:
-            self.world.control.drive(idx, x[idx])
+        """Hold every pulled end where it is now (force mode: ``_grip``)."""
+        for k, (idx, _, _) in enumerate(self.ends):
+            if k not in self.capped:
+                self._grip(k, idx, x)
+
+    def _grip(self, k: int, idx: np.ndarray, x: np.ndarray) -> None:
+        """Pull ``k``'s hand holds its particles ``idx`` where they are (``Control.grip``): it goes on pulling
+        with that pull's force but moves no further than ``GRIP_GIVE`` on, and lets the rope draw it back
+        only where the knot pulls harder than that."""
+        p, w = self.params, self.world
+        force = p.pulls[k].force if p.pulls[k].force is not None else p.force
+        a = x[idx].mean(axis=0)
+        d = _unit(self.aims[k]() - a, _UP) if self.aims[k] is not None else self.ends[k][2]
+        w.control.grip(idx, x[idx] + GRIP_GIVE * d, force / len(idx), force / p.speed / len(idx))
 
     def _pull(self, idx: np.ndarray, d: np.ndarray, force: float | None = None) -> None:
         """Pull particles ``idx`` along unit ``d`` with ``force`` N in all (default: the Tightening's),
@@ -263,7 +279,7 @@ class Tightening(Maneuver):
             if k in self.capped:
                 continue
             if q.distance is not None and float(np.linalg.norm(a - pos)) >= q.distance:
-                w.control.drive(idx, x[idx])  # as far as this end gives: held there from now on
+                w.control.drive(idx, x[idx])  # as far as this end gives (its slack): held there from now on
                 self.capped.add(k)
             elif q.toward is not None:  # the pull turns to keep pointing at its point
                 self._pull(idx, _unit(self.aims[k]() - a, _UP), q.force)

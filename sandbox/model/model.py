@@ -116,6 +116,11 @@ class State:
         self.v.from_numpy(snap[1])
 
 
+GRIP_GIVE = 0.002
+"""m from its place at which a gripping hand (``Control.grip``) pulls with all its force: within it, a
+spring of grip / GRIP_GIVE N/m (1 N: 500 N/m) that the rope's own tension displaces by less than that."""
+
+
 @ti.data_oriented
 class Control:
     """Kinematic targets written by maneuvers (paper Eq. 4).
@@ -126,12 +131,19 @@ class Control:
     ``dst`` is never far away. A pulled particle stays dynamic and feels a
     constant force ``f`` and a drag ``-b v`` (a hand that pulls with a given
     tension instead of moving to a given place, at most at speed |f| / b).
+    A gripped particle is held at ``dst`` by a hand that gives: it stays
+    dynamic and is drawn back towards ``dst`` with a force that grows
+    linearly, to ``grip_force`` N at ``GRIP_GIVE`` from it, and stays there, against the same drag. A rope pulling harder than the grip
+    slips through the hand; one pulling less sits within ``GRIP_GIVE`` of its
+    place. (Held kinematically, a tightened knot between four hands has no way
+    to give: it snaps through itself, 5 mm deep in one frame.)
 
     Fields:
-        driven: (n,) i32, 1 if kinematic, 2 if pulled by ``force``, else 0.
-        src, dst: (n,) vec3 f32, m.
+        driven: (n,) i32, 1 if kinematic, 2 if pulled by ``force``, 3 if gripped, else 0.
+        src, dst: (n,) vec3 f32, m (``dst``: a gripped particle's place).
         force: (n,) vec3 f32, N, on pulled particles.
-        drag: (n,) f32, N s/m, on pulled particles.
+        drag: (n,) f32, N s/m, on pulled and gripped particles.
+        grip_force: (n,) f32, N, the most a gripping hand pulls with.
     """
 
     def __init__(self, n: int, x0: np.ndarray) -> None:
@@ -141,10 +153,12 @@ class Control:
         self.dst = ti.Vector.field(3, ti.f32, shape=n)
         self.force = ti.Vector.field(3, ti.f32, shape=n)
         self.drag = ti.field(ti.f32, shape=n)
+        self.grip_force = ti.field(ti.f32, shape=n)
         self._driven = np.zeros(n, np.int32)
         self._dst = np.asarray(x0, np.float32).copy()
         self._force = np.zeros((n, 3), np.float32)
         self._drag = np.zeros(n, np.float32)
+        self._grip = np.zeros(n, np.float32)
         self._dirty = True
 
     def drive(self, idx, targets) -> None:
@@ -154,6 +168,7 @@ class Control:
         self._dst[idx] = np.asarray(targets, np.float32).reshape(len(idx), 3)
         self._force[idx] = 0.0
         self._drag[idx] = 0.0
+        self._grip[idx] = 0.0
         self._dirty = True
 
     def pull(self, idx, forces, drag) -> None:
@@ -163,6 +178,19 @@ class Control:
         self._driven[idx] = 2
         self._force[idx] = np.asarray(forces, np.float32).reshape(len(idx), 3)
         self._drag[idx] = drag
+        self._grip[idx] = 0.0
+        self._dirty = True
+
+    def grip(self, idx, places, force, drag) -> None:
+        """Hold particles ``idx`` at ``places`` (m) by a hand that pulls each back with at most ``force`` N
+        (``GRIP_GIVE`` from its place and beyond) against a drag of ``drag`` N s/m: a hand that holds an end
+        as hard as it pulled it, and lets it slip when the rope pulls harder."""
+        idx = np.atleast_1d(np.asarray(idx, np.int64))
+        self._driven[idx] = 3
+        self._dst[idx] = np.asarray(places, np.float32).reshape(len(idx), 3)
+        self._force[idx] = 0.0
+        self._drag[idx] = drag
+        self._grip[idx] = force
         self._dirty = True
 
     def release(self, idx) -> None:
@@ -171,19 +199,28 @@ class Control:
         self._driven[idx] = 0
         self._force[idx] = 0.0
         self._drag[idx] = 0.0
+        self._grip[idx] = 0.0
         self._dirty = True
 
     def is_driven(self, idx) -> np.ndarray:
-        """Whether particles ``idx`` are kinematic."""
-        return self._driven[np.asarray(idx)] == 1
+        """Whether particles ``idx`` are held by a hand: kinematic, or gripped."""
+        return np.isin(self._driven[np.asarray(idx)], (1, 3))
+
+    def is_gripped(self, idx) -> np.ndarray:
+        """Whether particles ``idx`` are gripped (held by a hand that gives, ``grip``)."""
+        return self._driven[np.asarray(idx)] == 3
 
     def is_pulled(self, idx) -> np.ndarray:
         """Whether particles ``idx`` are pulled by a force."""
         return self._driven[np.asarray(idx)] == 2
 
     def forces(self) -> tuple[np.ndarray, np.ndarray]:
-        """(n, 3) forces (N) and (n,) drags (N s/m) on pulled particles, zero elsewhere."""
+        """(n, 3) forces (N) and (n,) drags (N s/m) on pulled particles (drags on gripped ones too), zero elsewhere."""
         return self._force.astype(np.float64), self._drag.astype(np.float64)
+
+    def grips(self) -> np.ndarray:
+        """(n,) most force (N) of the hand that grips each particle, zero elsewhere."""
+        return self._grip.astype(np.float64)
 
     def target(self, idx) -> np.ndarray:
         """Current targets of particles ``idx`` (m)."""
@@ -191,11 +228,11 @@ class Control:
 
     def snapshot(self) -> tuple:
         """Copy of the host-side targets and forces (for rollback)."""
-        return self._driven.copy(), self._dst.copy(), self._force.copy(), self._drag.copy()
+        return self._driven.copy(), self._dst.copy(), self._force.copy(), self._drag.copy(), self._grip.copy()
 
     def restore(self, snap: tuple) -> None:
         """Restore a :meth:`snapshot`; uploaded at the next frame."""
-        self._driven[:], self._dst[:], self._force[:], self._drag[:] = snap
+        self._driven[:], self._dst[:], self._force[:], self._drag[:], self._grip[:] = snap
         self._dirty = True
 
     @property
@@ -210,5 +247,6 @@ class Control:
         self.dst.from_numpy(self._dst)
         self.force.from_numpy(self._force)
         self.drag.from_numpy(self._drag)
+        self.grip_force.from_numpy(self._grip)
         self._dirty = False
         return True

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sandbox.model.model import GRIP_GIVE
 from sandbox.solvers.projection import ProjectionParams, ProjectionRopeSolver, RopeSystem
 
 
@@ -68,6 +69,8 @@ class ReferenceRopeSolver:
         # in it as it does in the fast solver.
         force, drag = ctl.forces()
         pulled = np.flatnonzero(ctl.is_pulled(np.arange(len(x))))
+        gripped = np.flatnonzero(ctl.is_gripped(np.arange(len(x))))
+        grip, place = ctl.grips()[gripped, None], ctl.target(gripped).astype(np.float64)
         for k in range(substeps):
             frac = (k + 1) / substeps
             targets = [(int(i), src[j] + frac * (dst[j] - src[j])) for j, i in enumerate(driven)]
@@ -75,6 +78,17 @@ class ReferenceRopeSolver:
                 wi = self.inv_mass[pulled, None]
                 v[pulled] = (v[pulled] + dt * self.gravity + dt * wi * force[pulled]) / (1.0 + dt * wi * drag[pulled, None])
                 v[pulled] -= dt * self.gravity  # the step adds gravity itself
+            if len(gripped):  # Control.grip: a spring to the place, implicit, up to the grip's force
+                wi = self.inv_mass[gripped, None]
+                stiff = np.broadcast_to(grip / GRIP_GIVE, (len(gripped), 1)).copy()
+                f = stiff * (place - x[gripped])
+                fn = np.linalg.norm(f, axis=1, keepdims=True)
+                over = fn > grip
+                f = np.where(over, f * grip / np.maximum(fn, 1e-30), f)
+                stiff[over] = 0.0
+                den = 1.0 + dt * wi * (drag[gripped, None] + dt * stiff)
+                v[gripped] = (v[gripped] + dt * self.gravity + dt * wi * f) / den
+                v[gripped] -= dt * self.gravity
             x, v = self.solver.step(x, v, dt, self.gravity, targets)
         w.state.x.from_numpy(x.astype(np.float32))
         w.state.v.from_numpy(v.astype(np.float32))

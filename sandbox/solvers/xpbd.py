@@ -6,7 +6,7 @@ Per substep (each pass O(n) in particles or constraints):
    positions the substep starts from, before the prediction takes them as
    x_prev: the overlap and rod error the last substep left are removed
    without turning into velocity -- O(n)
-1. predict: gravity, pulling forces, damping, kinematic targets (Control) -- O(n)
+1. predict: gravity, pulling and gripping hands, damping, kinematic targets (Control) -- O(n)
 2. broad phase: spatial hash of rope segments -- O(n)
 3. distance constraints (rods Eq. 2, bending Eq. 3, cloth edges), graph
    coloured Gauss-Seidel: each colour is one parallel loop with disjoint
@@ -62,7 +62,7 @@ from sandbox.collision.medial import MedialSheet
 from sandbox.collision.ropecollision import RopeCollision
 from sandbox.collision.selfcollision import ClothSelfCollision
 from sandbox.constraints.distance import xpbd_distance
-from sandbox.model.model import Control, Model, State
+from sandbox.model.model import GRIP_GIVE, Control, Model, State
 from sandbox.solvers.cloth_joint import JointClothProjection, cloth_chain_groups
 from sandbox.solvers.rope_chain import ChainProjection, build_chains, has_rope_chains
 
@@ -373,6 +373,20 @@ class XPBDSolver:
                     wi = self.model.inv_mass[i]
                     v = (v + dt * wi * ctl.force[i]) / (1.0 + dt * wi * ctl.drag[i])
                     self.w[i] = wi / (1.0 + dt * wi * ctl.drag[i])
+                elif mode == 3:
+                    # Gripped (Control.grip): a spring k d back to its place, implicit
+                    # as the drag is, up to the grip's force; beyond it that force.
+                    wi = self.model.inv_mass[i]
+                    d = ctl.dst[i] - st.x[i]
+                    k = ctl.grip_force[i] / ti.static(GRIP_GIVE)
+                    f = k * d
+                    fn = f.norm()
+                    if fn > ctl.grip_force[i]:
+                        f *= ctl.grip_force[i] / fn
+                        k = 0.0
+                    den = 1.0 + dt * wi * (ctl.drag[i] + dt * k)
+                    v = (v + dt * wi * f) / den
+                    self.w[i] = wi / den
                 v *= ti.max(1.0 - self.model.damping[i] * dt, 0.0)
                 st.v[i] = v
                 st.x[i] = st.x[i] + dt * v
