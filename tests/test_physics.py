@@ -253,6 +253,14 @@ def test_gripped_rod_hangs_within_the_grip_or_slips_at_the_closed_form_speed(sol
         assert abs(float(np.linalg.norm(x[1] - x[0])) - 0.1) < 1e-3  # the rod holds while it slips
 
 
+def test_a_grip_needs_a_force():
+    sim = _sandbox(_rod_level((0.0, 0.5, 0.0), (0.0, 0.4, 0.0)))
+    for force, drag in ((0.0, 1.0), (-1.0, 1.0), (1.0, -0.5)):
+        with pytest.raises(ValueError, match="a grip needs a force > 0 N and a drag >= 0"):
+            sim.world.control.grip([0], [[0.0, 0.5, 0.0]], force, drag)
+    assert not sim.world.control.is_driven([0, 1]).any()  # nothing half set
+
+
 def test_simple_pendulum_period():
     """A pinned one-rod rope swings with the simple pendulum's finite-amplitude period 2 pi sqrt(L/g) (1 + theta0^2/16)."""
     L, theta0, fps = 0.5, math.radians(8.0), 60

@@ -133,10 +133,11 @@ class Control:
     tension instead of moving to a given place, at most at speed |f| / b).
     A gripped particle is held at ``dst`` by a hand that gives: it stays
     dynamic and is drawn back towards ``dst`` with a force that grows
-    linearly, to ``grip_force`` N at ``GRIP_GIVE`` from it, and stays there, against the same drag. A rope pulling harder than the grip
-    slips through the hand; one pulling less sits within ``GRIP_GIVE`` of its
-    place. (Held kinematically, a tightened knot between four hands has no way
-    to give: it snaps through itself, 5 mm deep in one frame.)
+    linearly to ``grip_force`` N at ``GRIP_GIVE`` from it and stays there,
+    against the same drag. A rope pulling harder than the grip slips
+    through the hand; one pulling less sits within ``GRIP_GIVE`` of its
+    place. (Held kinematically, a tightened knot between four hands has no
+    way to give: it snapped through itself, 5 mm deep within three frames.)
 
     Fields:
         driven: (n,) i32, 1 if kinematic, 2 if pulled by ``force``, 3 if gripped, else 0.
@@ -185,6 +186,8 @@ class Control:
         """Hold particles ``idx`` at ``places`` (m) by a hand that pulls each back with at most ``force`` N
         (``GRIP_GIVE`` from its place and beyond) against a drag of ``drag`` N s/m: a hand that holds an end
         as hard as it pulled it, and lets it slip when the rope pulls harder."""
+        if not force > 0 or not drag >= 0:
+            raise ValueError(f"a grip needs a force > 0 N and a drag >= 0 N s/m, got {force} and {drag}")
         idx = np.atleast_1d(np.asarray(idx, np.int64))
         self._driven[idx] = 3
         self._dst[idx] = np.asarray(places, np.float32).reshape(len(idx), 3)

@@ -80,12 +80,12 @@ class ReferenceRopeSolver:
                 v[pulled] -= dt * self.gravity  # the step adds gravity itself
             if len(gripped):  # Control.grip: a spring to the place, implicit, up to the grip's force
                 wi = self.inv_mass[gripped, None]
-                stiff = np.broadcast_to(grip / GRIP_GIVE, (len(gripped), 1)).copy()
+                stiff = grip / GRIP_GIVE
                 f = stiff * (place - x[gripped])
                 fn = np.linalg.norm(f, axis=1, keepdims=True)
                 over = fn > grip
                 f = np.where(over, f * grip / np.maximum(fn, 1e-30), f)
-                stiff[over] = 0.0
+                stiff = np.where(over, 0.0, stiff)
                 den = 1.0 + dt * wi * (drag[gripped, None] + dt * stiff)
                 v[gripped] = (v[gripped] + dt * self.gravity + dt * wi * f) / den
                 v[gripped] -= dt * self.gravity
