@@ -335,7 +335,7 @@ class World:
         """
         self._follow_attachments()
         for motion, pins, rest in self.rope_motions:
-            held = self.control.is_driven(pins)
+            held = self.control.is_kinematic(pins)  # a grip is not turned into a drive
             if held.any():
                 self._drive_carried(motion, pins[held], rest[held])
         snap = self.state.save()
@@ -552,7 +552,7 @@ class World:
         """Drive each attached particle to its place under its carrier's pose at the end of the coming frame."""
         kept = []
         for a in self.attachments:
-            if not self.control.is_driven([a["particle"]])[0]:
+            if not self.control.is_kinematic([a["particle"]])[0]:
                 continue  # released: the attachment ends
             self._drive_carried(self.carried_ropes[a["rope"]], [a["particle"]], a["local"][None])
             kept.append(a)

@@ -232,7 +232,8 @@ def test_gripped_rod_hangs_within_the_grip_or_slips_at_the_closed_form_speed(sol
     f = 2.0 * w_rod if hold else 0.5 * w_rod
     b = f / 0.2 if hold else 2.0 * m / 0.02  # N s/m: the spring's motion dies out in 0.1 s; terminal in 0.1 s
     sim.world.control.grip([0], top[None], f, b)
-    assert sim.world.control.is_gripped([0]).all() and sim.world.control.is_driven([0]).all()
+    ctl = sim.world.control
+    assert ctl.is_gripped([0]).all() and ctl.is_driven([0]).all() and not ctl.is_kinematic([0]).any()
     for _ in range(60):
         sim.step()
     x = sim.rope_positions("rod").astype(np.float64)

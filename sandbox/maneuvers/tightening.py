@@ -254,9 +254,13 @@ class Tightening(Maneuver):
         only where the knot pulls harder than that."""
         p, w = self.params, self.world
         force = p.pulls[k].force if p.pulls[k].force is not None else p.force
-        a = x[idx].mean(axis=0)
-        d = _unit(self.aims[k]() - a, _UP) if self.aims[k] is not None else self.ends[k][2]
-        w.control.grip(idx, x[idx] + GRIP_GIVE * d, force / len(idx), force / p.speed / len(idx))
+        place = x[idx] + GRIP_GIVE * self._heading(k, x[idx].mean(axis=0))
+        w.control.grip(idx, place, force / len(idx), force / p.speed / len(idx))
+
+    def _heading(self, k: int, at: np.ndarray) -> np.ndarray:
+        """Unit direction of pull ``k`` from ``at``: towards its place (a ``toward`` pull turns with the end),
+        else the direction it started with."""
+        return _unit(self.aims[k]() - at, _UP) if self.aims[k] is not None else self.ends[k][2]
 
     def _pull(self, idx: np.ndarray, d: np.ndarray, force: float | None = None) -> None:
         """Pull particles ``idx`` along unit ``d`` with ``force`` N in all (default: the Tightening's),
@@ -282,7 +286,7 @@ class Tightening(Maneuver):
                 w.control.drive(idx, x[idx])  # as far as this end gives (its slack): held there from now on
                 self.capped.add(k)
             elif q.toward is not None:  # the pull turns to keep pointing at its point
-                self._pull(idx, _unit(self.aims[k]() - a, _UP), q.force)
+                self._pull(idx, self._heading(k, a), q.force)
         self.still = self.still + 1 if speed < p.settle_speed else 0
         if self.pulled > self.best + p.stall:
             self.best, self.stalled = self.pulled, 0

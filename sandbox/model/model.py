@@ -209,6 +209,10 @@ class Control:
         """Whether particles ``idx`` are held by a hand: kinematic, or gripped."""
         return np.isin(self._driven[np.asarray(idx)], (1, 3))
 
+    def is_kinematic(self, idx) -> np.ndarray:
+        """Whether particles ``idx`` are driven kinematically (``drive``), not gripped."""
+        return self._driven[np.asarray(idx)] == 1
+
     def is_gripped(self, idx) -> np.ndarray:
         """Whether particles ``idx`` are gripped (held by a hand that gives, ``grip``)."""
         return self._driven[np.asarray(idx)] == 3
@@ -240,6 +244,7 @@ class Control:
 
     @property
     def driven_indices(self) -> np.ndarray:
+        """Particles driven kinematically (``is_kinematic``)."""
         return np.flatnonzero(self._driven == 1)
 
     def upload(self) -> bool:
