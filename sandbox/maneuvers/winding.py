@@ -37,9 +37,6 @@ SLIP_TURNS = 0.25
 back to the first particle that slipped and lays the turns again from there."""
 MAX_RELAYS = 5
 """Times one winding lays its turns again; after that it goes on without looking back (the criteria judge it)."""
-TAIL_SPEED = 1.0
-"""m/s: the fastest a carried tail's tip moves (``carry_tail``): a hand's pace, which swings the tip around T with
-the winding without whipping the tail."""
 
 
 class WindingParams(Params):
@@ -54,9 +51,6 @@ class WindingParams(Params):
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.3  # m/s of the driven particle
     tolerance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.25  # fraction of C's rod length
     straighten: Annotated[float, pydantic.Field(ge=0)] = 0.0  # m of T held straight around X_T (paper §4.2)
-    # The hand keeps C's tip and carries the tail around T along G's tangent
-    # (fraction of the tail's length it is held out by); 0 lets the tail dangle.
-    carry_tail: Annotated[float, pydantic.Field(ge=0, lt=1)] = 0.0
     # m of C after the turns laid one particle at a time on a straight line
     # from G's end along its last tangent (at most to C's tip): the tail is
     # threaded out of the turns the way G leaves them, rather than left to
@@ -132,15 +126,9 @@ class Winding(Maneuver):
         self.n_max = n_left + 1  # particles available after the crossing
         self.pos = xc[self.i0].astype(np.float64)
         # Only the current particle is constrained: a hand that held C's wound
-        # side (e.g. its tip during a Crossing) lets go now, unless it carries
-        # the tail (then only the tip stays held).
+        # side (e.g. its tip during a Crossing) lets go now.
         after = np.arange(self.i0 + 1, len(xc)) if p.direction > 0 else np.arange(0, self.i0)
         held = self.c.idx[after[w.control.is_driven(self.c.idx[after]).astype(bool)]] if len(after) else after
-        self.tip = int(self.c.idx[len(xc) - 1 if p.direction > 0 else 0])
-        if p.carry_tail > 0:
-            held = held[held != self.tip]
-            self.tip_pos = w.positions()[self.tip].astype(np.float64)
-            w.control.drive([self.tip], self.tip_pos[None, :])
         if len(held):
             w.control.release(held)
         self.x_hat = self.geodesic.x_hat
@@ -342,8 +330,6 @@ class Winding(Maneuver):
         self.pos = self._keep_holds(idx, self.pos)
         held_back = float(np.linalg.norm(self.pos - wanted)) > 1e-9
         w.control.drive([idx], self.pos[None, :])
-        if p.carry_tail > 0:
-            self._carry_tail(target)
         x = w.positions()[idx]
         self.tick_in_particle += 1
         miss = float(np.linalg.norm(x - target))
@@ -444,7 +430,7 @@ class Winding(Maneuver):
         """``pos`` kept within C's reach of the particles other hands hold, and one rod from a held neighbour.
 
         A held particle k >= 2 rods along C's rope (the pinched crossing, a
-        carried tip, a hold left by an earlier maneuver) bounds where ``idx``
+        hold left by an earlier maneuver) bounds where ``idx``
         can go: at most ``REACH_SLACK`` k rods from it, or as far as it is
         now where that is more (``within_holds``); a command past that would
         stretch the rope between them by more than half the levels' 1 %
@@ -470,33 +456,6 @@ class Winding(Maneuver):
             if n > 1e-12:
                 pos = xh + v * (self.c.rod_length / n)
         return pos
-
-    def _carry_tail(self, target: np.ndarray) -> None:
-        """Hold C's tip out along G's tangent at the current target, like a hand passing it around T.
-
-        The tail then sweeps around T with the winding instead of dangling on
-        whichever side gravity takes it, so the tail leaves the knot the way
-        the winding goes (the knot's identity does not depend on where it
-        falls). The tip moves at most ``TAIL_SPEED``, and is kept its radius
-        clear of every object and the ground.
-        """
-        p, w = self.params, self.world
-        k = min(self.k, self.n - 1)
-        a, b = self.targets[max(k - 1, 0)], self.targets[min(k + 1, self.n - 1)]
-        tangent = b - a
-        norm = float(np.linalg.norm(tangent))
-        if norm < 1e-9:
-            return
-        left = abs(float(self.c.along(self.tip)) - float(self.c.along(self._particle(self.k)))) * self.c.rod_length
-        # A hand keeps what it holds clear of the object and the ground (the
-        # tail's tangent may point into them where T lies on the object).
-        clearance = float(w.model.data.radius[self.tip])
-        goal = w.clear_of_solids(target + (p.carry_tail * left / norm) * tangent, clearance)[0]
-        d = goal - self.tip_pos
-        dist = float(np.linalg.norm(d))
-        step = TAIL_SPEED / w.fps
-        self.tip_pos = goal if dist <= step else self.tip_pos + d * (step / dist)
-        w.control.drive([self.tip], self.tip_pos[None, :])
 
     def stop(self) -> None:
         # The last wound particle stays held (paper §4.2: constraining it keeps
