@@ -9,13 +9,13 @@ ratio exp(mu pi):
 
     v = (F2 - exp(mu pi) F1) / (b (1 + exp(mu pi)))    (0 while r < exp(mu pi))
 
-Each case runs from rest and reports A's sliding speed over the last half
-second (before ``--seconds``, or before A has slid ``REACH``, whichever
-comes first) next to that closed form. Knots hold by this friction
+Each case runs from rest and reports A's mean sliding speed from
+``SETTLE`` on, until ``--seconds`` or until A has slid ``REACH``, whichever
+comes first, next to that closed form. Knots hold by this friction
 (a square knot drawn tight holds by the capstan of its turns), so a rope
 that slides where it should hold ties knots that come undone.
 
-Usage: python tools/capstan.py [--seconds 2.5] [--mu 0 0.25 0.5 1] [--arch cpu]
+Usage: python tools/capstan.py [--seconds 4] [--mu 0 0.25 0.5 1] [--arch cpu]
 Prints one Markdown table (docs/benchmarks.md, "Rope friction").
 """
 
@@ -32,15 +32,16 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 RADIUS = 0.006  # m, both ropes (the knot levels' ropes)
 F1 = 0.2  # N, the lighter pull
 DRAG = 0.5  # N s/m, each hand
-REACH = 0.08  # m: the heavier end comes at most this far down (A's ends hang 0.2 m below B's top)
+HANG = 0.5  # m: A's ends hang this far below B
+REACH = 0.25  # m: the heavier end comes at most this far down (A still hangs on both sides)
 SETTLE = 0.5  # s: the pulls are taken up (A's mass over the drags: 0.03 s)
 
 
 def level_text(mu: float, radius: float = RADIUS) -> str:
-    """The scene: B along z at y = 0.5 held at both ends; A in the x-y plane, half a turn over B, ends 0.2 m down."""
+    """The scene: B along z at y = 0.5 held at both ends; A in the x-y plane, half a turn over B, ends HANG down."""
     r = 2.0 * radius  # A's centre line around B's
     arc = [(-r * math.cos(t), 0.5 + r * math.sin(t)) for t in np.linspace(0.0, math.pi, 9)]
-    pts = [(-r, 0.3)] + arc + [(r, 0.3)]
+    pts = [(-r, 0.5 - HANG)] + arc + [(r, 0.5 - HANG)]
     points = ", ".join(f"[{x:.6f}, {y:.6f}, 0.0]" for x, y in pts)
     return f"""
 version: 1
@@ -65,8 +66,8 @@ def closed_form(mu: float, ratio: float) -> float:
 
 
 def slide_speed(mu: float, ratio: float, seconds: float, arch: str) -> float:
-    """A's measured speed towards the heavier pull (m/s): over the last half second before ``seconds``, or
-    before the heavier end has come ``REACH`` down (A still hangs over B on both sides), after ``SETTLE``."""
+    """A's mean speed towards the heavier pull (m/s) from ``SETTLE`` until ``seconds`` have passed or the heavier
+    end has come ``REACH`` down (A still hangs over B on both sides)."""
     from sandbox.api import Sandbox
     from sandbox.levels.loader import load_level_from_string
 
@@ -81,7 +82,7 @@ def slide_speed(mu: float, ratio: float, seconds: float, arch: str) -> float:
         sb.step()
         ys.append(float(sb.rope_positions("A")[-1, 1]))
     end = len(ys) - 1
-    start = max(int(round(SETTLE * fps)), end - int(round(0.5 * fps)))
+    start = int(round(SETTLE * fps))
     if start >= end:  # it came REACH down before SETTLE: as fast as that
         start = 0
     return (ys[start] - ys[end]) * fps / (end - start)
@@ -89,7 +90,7 @@ def slide_speed(mu: float, ratio: float, seconds: float, arch: str) -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=2.5)
+    ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--mu", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0])
     ap.add_argument("--arch", default="cpu")
     args = ap.parse_args(argv)
