@@ -687,4 +687,3 @@ def test_a_frictionless_rope_over_a_rope_slides_at_the_closed_form_speed():
 
     v = capstan.slide_speed(0.0, 1.5, 4.0, "cpu")
     assert v == pytest.approx(capstan.closed_form(0.0, 1.5), rel=0.1)
-

@@ -182,8 +182,8 @@ def test_rope_wind_moving_reaches_its_criteria_headless():
 
 
 def test_winding_lets_go_of_the_wound_side():
-    """Only the particle being laid is held: C's tip hangs free while the turns are laid (after the first
-    frame, in which the hand takes the crossing particle)."""
+    """Only the particle being laid is held: no hand holds C's tip while the turns are laid (from the
+    Winding's second frame on)."""
     w = _shipped_world("rope_wind.yaml")
     tip = w.rope("C").end - 1
     held = []

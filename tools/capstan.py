@@ -26,9 +26,8 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 RADIUS = 0.006  # m, both ropes (the knot levels' ropes)
 F1 = 0.2  # N, the lighter pull
 DRAG = 0.5  # N s/m, each hand

@@ -459,7 +459,7 @@ class Winding(Maneuver):
 
     def stop(self) -> None:
         # The last wound particle stays held (paper §4.2: constraining it keeps
-        # the winding), and so do a carried tip and T's straightened run, so
+        # the winding), and so does T's straightened run, so
         # that the winding keeps its shape until a Tightening or Release. On
         # a T that a scripted motion carries, the hold rides on T: held still,
         # it would unwind the turns as T moves away.
