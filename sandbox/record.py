@@ -61,8 +61,11 @@ class ManeuverRecord:
         crossings: (active, target) -> (3,) point X where they cross (m).
         windings: (active, target) -> the winding, oldest first.
         wraps: (cloth, control line) -> the wrap.
+        knots: the knot's strands, sorted -> (3,) place (m) where the last Tightening of them left the knot
+            (the median of the places its strands touch, ``geometry.knots.knot_centre``).
     """
 
     crossings: dict[Pair, np.ndarray] = dataclasses.field(default_factory=dict)
     windings: dict[Pair, WindingRecord] = dataclasses.field(default_factory=dict)
     wraps: dict[Pair, WrapRecord] = dataclasses.field(default_factory=dict)
+    knots: dict[tuple[str, ...], np.ndarray] = dataclasses.field(default_factory=dict)

@@ -54,7 +54,7 @@ class Push(Params):
     (paper Table 3: a Tightening goes "towards" the object's centre, or towards the half knot
     tied before, so that the second half knot closes onto the first)."""
 
-    toward: Literal["knot"] | TargetLike  # a place (a point, or an object's site with an offset), or "knot": the parts of these strands wound before
+    toward: Literal["knot"] | TargetLike  # a place (a point, or an object's site with an offset), or "knot": where the last Tightening of these strands left their knot
     force: Annotated[float, pydantic.Field(gt=0)]  # N, spread over the wound particles
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s the wound part moves at most under it
 
@@ -178,11 +178,17 @@ class Tightening(Maneuver):
         if p.push is None:
             return np.zeros(0, np.int64)
         rec = self._records()
-        if not rec or (p.push.toward == "knot" and len(rec) < 2):
-            need = "two windings (one to push, one to push it onto)" if rec else "a winding"
-            self.message = (f"push needs {need} of the knot's strands {[s.name for s in self.strands]} "
-                            f"before this Tightening; found {len(rec)}")
+        names = [s.name for s in self.strands]
+        if not rec:
+            self.message = f"push needs a winding of the knot's strands {names} before this Tightening; found none"
             return np.zeros(0, np.int64)
+        if p.push.toward == "knot":
+            self.knot_place = self.world.record.knots.get(self._knot_key())
+            if self.knot_place is None:
+                tied = sorted(self.world.record.knots) or "none"
+                self.message = (f"push toward 'knot' needs a knot of {names} tightened before this Tightening "
+                                f"(knots tightened so far: {tied})")
+                return np.zeros(0, np.int64)
         ends = np.concatenate([idx for idx, _, _ in self.ends])
         idx = np.atleast_1d(rec[-1].particles).astype(np.int64)
         idx = idx[~np.isin(idx, ends)]
@@ -190,10 +196,23 @@ class Tightening(Maneuver):
         return idx
 
     def _push_goal(self, x: np.ndarray) -> np.ndarray:
-        push = self.params.push
-        if push.toward != "knot":
-            return self.push_aim()
-        return np.vstack([x[np.atleast_1d(v.particles)] for v in self._records()[:-1]]).mean(axis=0)
+        """Where the push goes: its place, or the place where the knot tied before was left (a place, not the
+        particles wound then: a tightened knot draws rope through itself, and those particles with it)."""
+        return self.knot_place if self.params.push.toward == "knot" else self.push_aim()
+
+    def _knot_key(self) -> tuple[str, ...]:
+        return tuple(sorted(s.name for s in self.strands))
+
+    def _record_knot(self, x: np.ndarray) -> None:
+        """Record where this Tightening leaves the knot (``ManeuverRecord.knots``), if its strands touch."""
+        from sandbox.geometry.knots import knot_centre
+        from sandbox.model.strands import joined_at_centre
+
+        names = [s.name for s in self.strands]
+        curves = joined_at_centre(names, [x[s.idx] for s in self.strands])
+        centre = knot_centre(curves, radius=max(s.radius for s in self.strands))
+        if centre is not None:
+            self.world.record.knots[self._knot_key()] = centre
 
     def _push_toward(self, x: np.ndarray, idx: np.ndarray) -> None:
         """Push particles ``idx`` with ``push.force`` in all toward the push's goal."""
@@ -337,10 +356,13 @@ class Tightening(Maneuver):
         return Status.RUNNING
 
     def stop(self) -> None:
-        """The pushing hand lets go once the knot is tight (the pulled ends stay held)."""
+        """The pushing hand lets go once the knot is tight (the pulled ends stay held); where the knot is left is
+        recorded."""
         pushed = getattr(self, "pushed", np.zeros(0, np.int64))
         if len(pushed):
             self.world.control.release(pushed)
+        if hasattr(self, "strands"):
+            self._record_knot(self.world.positions().astype(np.float64))
 
     def metrics(self) -> dict[str, float]:
         s, o = getattr(self, "last", (0.0, 0.0))
