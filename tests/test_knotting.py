@@ -752,6 +752,71 @@ def test_tightening_push_needs_windings_to_push():
     assert any("push needs a winding" in str(e) for e in w.fsm.events), w.fsm.events
 
 
+CROSSED_PULL = """
+version: 1
+name: crossed_pull
+scene:
+  ropes:
+    - {name: R, points: [[-0.2, 0.5, 0], [0.2, 0.5, 0]], rod_length: 0.02, radius: 0.005, mass: 0.05}
+    - {name: S, points: [[0.03, 0.511, -0.2], [0.03, 0.511, 0.2]], rod_length: 0.02, radius: 0.005, mass: 0.05}
+sim: {fps: 60, substeps: 10, iterations: 2}
+fsm:
+  - {run: Anchoring, with: {body: R, sites: [start, end]}}
+  - {run: Anchoring, with: {body: S, sites: [start, end]}}
+  - {run: Tightening, with: {pulls: [{body: R, site: end, direction: [1, 0, 0]}], keep: [{body: R, sites: [start]}],
+                             knot: [S, R], force: 0.5, speed: 0.1, distance: 0.01}}
+"""
+
+
+def test_tightening_records_where_it_leaves_the_knot():
+    """When a Tightening ends, the place where its strands touch (the median of their touches) is recorded under
+    the strands' sorted names: here S lies across R at x = 0.03, one diameter above it."""
+    w = _world(CROSSED_PULL)
+    while not w.fsm.finished:
+        w.step()
+    assert w.fsm.succeeded, w.fsm.events
+    place = w.record.knots[("R", "S")]
+    r, s = w.rope_positions("R"), w.rope_positions("S")
+    assert abs(place[0] - 0.03) < 0.01 and abs(place[2]) < 0.01
+    assert r[:, 1].min() - 0.001 < place[1] < s[:, 1].max() + 0.001  # between the two ropes' heights
+
+
+def test_tightening_push_toward_knot_needs_a_knot_tightened_before():
+    """A push toward "knot" with no knot of these strands tightened before fails at once, and names the knots
+    there are."""
+    w = _world(SLACK_PULL.replace("distance: 0.5", "distance: 0.5, push: {toward: knot, force: 0.1}"))
+    while w.fsm.state != "1:Wait":
+        w.step()
+    n = len(w.rope_positions("R"))
+    w.record.windings[("R", "R")] = WindingRecord(np.arange(n // 2 - 2, n // 2 + 3), np.array([1.0, 0.0, 0.0]))
+    while not w.fsm.finished:
+        w.step()
+    assert not w.fsm.succeeded
+    assert any("needs a knot of ['R'] tightened before" in str(e) and "so far: none" in str(e)
+               for e in w.fsm.events), w.fsm.events
+
+
+def test_tightening_push_toward_knot_goes_to_the_recorded_place_not_the_particles_wound_before():
+    """A push toward "knot" goes to where the last Tightening left the knot: here a place 0.3 m along +z, while
+    the particles wound before (which a tightened knot may have drawn out of itself) lie on the other side."""
+    w = _world(SLACK_PULL.replace("distance: 0.5", "distance: 0.5,\n push: {toward: knot, force: 0.2, speed: 0.05}"))
+    while w.fsm.state != "1:Wait":
+        w.step()
+    n = len(w.rope_positions("R"))
+    first, wound = np.arange(0, 4), np.arange(n // 2 - 2, n // 2 + 3)
+    w.record.windings[("R", "T")] = WindingRecord(first, np.array([1.0, 0.0, 0.0]))
+    w.record.windings[("R", "R")] = WindingRecord(wound, np.array([1.0, 0.0, 0.0]))
+    w.record.knots[("R",)] = np.array([0.0, 0.4, 0.3])
+    while w.fsm.state != "2:Tightening":
+        w.step()
+    z0, far = w.positions()[wound, 2].mean(), -1.0
+    while not w.fsm.finished:
+        w.step()
+        far = max(far, w.positions()[wound, 2].mean() - z0)
+    assert w.fsm.succeeded, w.fsm.events
+    assert far > 0.02  # pushed toward the recorded place, z = 0.3
+
+
 def test_a_place_next_to_an_object_moves_and_turns_with_it():
     """``{object, site, offset}``: the offset is in the object's own axes, so a pull ``toward`` a place
     written beside a box goes where the box goes, turned with it (a shifted or turned placement of the

@@ -234,3 +234,22 @@ def test_geodesic_recompute_is_cheap():
         trace_geodesic(tube, pts[20] + [0.0, 0.0, 0.1], theta=math.pi / 4, w0=3.0)
         times.append(time.perf_counter() - t0)
     assert np.median(times[1:]) < 0.01
+
+
+@pytest.mark.parametrize("turn", [60, 90, 120, 150])
+def test_a_target_line_traced_into_a_bend_tighter_than_its_tube_never_jumps(turn):
+    """T bends by ``turn`` degrees at a corner, much tighter than the tube's radius (its inside folds). A target
+    line traced towards it from twelve points around the tube keeps every step of G short (a few RK steps long;
+    where the metric factor went to zero it jumped 0.3 m, the whole rest of T, in one step)."""
+    r = 0.0144
+    d = np.array([np.cos(np.radians(turn)), np.sin(np.radians(turn)), 0.0])
+    pts = np.vstack([np.stack([np.arange(-0.30, 1e-4, 0.01), np.zeros(31), np.zeros(31)], axis=1),
+                     np.arange(1, 31)[:, None] * 0.01 * d])
+    tube = Tube(pts, r)
+    assert np.hypot(tube.k1, tube.k2).max() * r > 1.5  # the bend folds the tube
+    for phi in np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False):
+        g = trace_geodesic(tube, np.array([-0.06, r * np.cos(phi), r * np.sin(phi)]), theta=np.radians(60),
+                           w0=3.0, handedness=1, along=1)
+        steps = np.linalg.norm(np.diff(g.points, axis=0), axis=1)
+        assert steps.max() < 0.03, (phi, steps.max())
+        assert np.all(np.isfinite(g.points))

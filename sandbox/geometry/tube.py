@@ -36,6 +36,14 @@ from sandbox.geometry.winding import gauss_linking, winding_integral
 __all__ = ["Geodesic", "Tube", "sample_targets", "trace_geodesic", "tube_radius"]
 
 
+FOLD_H = 0.2
+"""Least metric factor h = 1 - R k cos(phi) of the geodesic equation. A tube of radius R folds onto itself on
+the inside of a bend of curvature k > 1 / R (a rope through a knot tied before bends about as tight as its
+own radius), where h <= 0: there ds/dl = cos(alpha) / h would carry a target line metres along the axis in
+one step. Bounded below, a line traced into such a bend goes through it at most 1 / FOLD_H times as fast
+along the axis as along itself; on a tube that does not fold (k R < 1 - FOLD_H) nothing changes."""
+
+
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of ``(n, 3)`` arrays (cheaper than np.cross for small n)."""
     return np.stack(
@@ -279,6 +287,7 @@ class Tube:
         last = len(k1s) - 1
         inv_ds, rad, inv_rad = 1.0 / self.ds, self.radius, 1.0 / self.radius
         cos, sin = math.cos, math.sin
+        h_min = FOLD_H
 
         def rhs(s: float, phi: float, alpha: float) -> tuple[float, float, float]:
             f = s * inv_ds
@@ -293,8 +302,8 @@ class Tube:
                 k2 = k2s[i] + a * (k2s[i + 1] - k2s[i])
             cp, sp = cos(phi), sin(phi)
             h = 1.0 - rad * (k1 * cp + k2 * sp)
-            if h < 1e-6:
-                h = 1e-6
+            if h < h_min:
+                h = h_min
             ca = cos(alpha) / h
             return ca, sin(alpha) * inv_rad, (k1 * sp - k2 * cp) * ca
 
