@@ -798,7 +798,8 @@ def test_tightening_push_toward_knot_needs_a_knot_tightened_before():
 
 def test_tightening_push_toward_knot_goes_to_the_recorded_place_not_the_particles_wound_before():
     """A push toward "knot" goes to where the last Tightening left the knot: here a place 0.3 m along +z, while
-    the particles wound before (which a tightened knot may have drawn out of itself) lie on the other side."""
+    the particles wound before (which a tightened knot may have drawn out of itself) lie at the rope's start, in
+    its plane z = 0: pushed toward them, the wound part would not move along z."""
     w = _world(SLACK_PULL.replace("distance: 0.5", "distance: 0.5,\n push: {toward: knot, force: 0.2, speed: 0.05}"))
     while w.fsm.state != "1:Wait":
         w.step()

@@ -37,11 +37,13 @@ __all__ = ["Geodesic", "Tube", "sample_targets", "trace_geodesic", "tube_radius"
 
 
 FOLD_H = 0.2
-"""Least metric factor h = 1 - R k cos(phi) of the geodesic equation. A tube of radius R folds onto itself on
-the inside of a bend of curvature k > 1 / R (a rope through a knot tied before bends about as tight as its
-own radius), where h <= 0: there ds/dl = cos(alpha) / h would carry a target line metres along the axis in
-one step. Bounded below, a line traced into such a bend goes through it at most 1 / FOLD_H times as fast
-along the axis as along itself; on a tube that does not fold (k R < 1 - FOLD_H) nothing changes."""
+"""Least metric factor h = 1 - R k cos(phi) of the geodesic equation (``Tube.trace``). A tube of radius R
+folds onto itself on the inside of a bend of curvature k > 1 / R (a rope through a knot tied before bends
+about as tight as its own radius), where h <= 0: there ds/dl = cos(alpha) / h would carry a target line
+metres along the axis in one step. h is held at FOLD_H or more wherever it would fall below, on the inside
+of bends with k R > 1 - FOLD_H (ds/dl and dalpha/dl both divide by it): a step then moves at most 1 / FOLD_H
+times its length along the axis. This removes the jump; a line traced into such a bend may still turn back
+at it or run off T without reaching its turns. Where k R < 1 - FOLD_H everywhere, nothing changes."""
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -160,6 +160,7 @@ class Tightening(Maneuver):
         self.push_best, self.push_stalled = np.inf, 0  # closest the pushed part has come to its goal
         self.pulled = 0.0
         self.tight = False
+        self.finished = False  # set when the Tightening is done (tight or pulled its whole distance)
         self.still = 0  # frames in a row that every pulled end has been still (force mode)
         self.best = 0.0  # farthest pulled so far, and frames since it last grew by ``stall`` (force mode)
         self.stalled = 0
@@ -201,17 +202,26 @@ class Tightening(Maneuver):
         return self.knot_place if self.params.push.toward == "knot" else self.push_aim()
 
     def _knot_key(self) -> tuple[str, ...]:
-        return tuple(sorted(s.name for s in self.strands))
+        """The knot's key in ``ManeuverRecord.knots``: its ropes (runs of one rope are that rope) and cloth lines,
+        sorted, so that a Tightening naming ``R[:70]`` and one naming ``R`` mean the same knot."""
+        return tuple(sorted({s.name if s.cloth else s.body for s in self.strands}))
 
     def _record_knot(self, x: np.ndarray) -> None:
-        """Record where this Tightening leaves the knot (``ManeuverRecord.knots``), if its strands touch."""
+        """Record where this Tightening leaves the knot (``ManeuverRecord.knots``); where its strands touch nowhere,
+        no place is left under its key (an older one would send a later push to a knot that is not there).
+        A rope is measured whole (two runs of it would touch at their join), two lines of one cloth as one curve
+        through its centre (``joined_at_centre``)."""
         from sandbox.geometry.knots import knot_centre
         from sandbox.model.strands import joined_at_centre
 
-        names = [s.name for s in self.strands]
-        curves = joined_at_centre(names, [x[s.idx] for s in self.strands])
+        ropes = {s.body: s for s in self.strands if not s.cloth}
+        lines = [s for s in self.strands if s.cloth]
+        names = list(ropes) + [s.name for s in lines]
+        curves = joined_at_centre(names, [x[s.line] for s in ropes.values()] + [x[s.idx] for s in lines])
         centre = knot_centre(curves, radius=max(s.radius for s in self.strands))
-        if centre is not None:
+        if centre is None:
+            self.world.record.knots.pop(self._knot_key(), None)
+        else:
             self.world.record.knots[self._knot_key()] = centre
 
     def _push_toward(self, x: np.ndarray, idx: np.ndarray) -> None:
@@ -318,6 +328,7 @@ class Tightening(Maneuver):
             self._hold_ends(x)
             self.tight = tight
             self.progress = 1.0
+            self.finished = True
             return Status.DONE
         return Status.RUNNING
 
@@ -343,9 +354,11 @@ class Tightening(Maneuver):
                 w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
             self.tight = True
             self.progress = 1.0
+            self.finished = True
             return Status.DONE
         if self.pulled >= p.distance:
             self.progress = 1.0
+            self.finished = True
             return Status.DONE
         step = min(step, p.distance - self.pulled)
         self.pulled += step
@@ -356,12 +369,12 @@ class Tightening(Maneuver):
         return Status.RUNNING
 
     def stop(self) -> None:
-        """The pushing hand lets go once the knot is tight (the pulled ends stay held); where the knot is left is
-        recorded."""
+        """The pushing hand lets go once the knot is tight (the pulled ends stay held); where a Tightening that
+        finished (tight, or pulled its whole ``distance``) left the knot is recorded."""
         pushed = getattr(self, "pushed", np.zeros(0, np.int64))
         if len(pushed):
             self.world.control.release(pushed)
-        if hasattr(self, "strands"):
+        if getattr(self, "finished", False):  # a Tightening that failed or timed out left no knot to push onto
             self._record_knot(self.world.positions().astype(np.float64))
 
     def metrics(self) -> dict[str, float]:
