@@ -61,7 +61,7 @@ class ManeuverRecord:
         crossings: (active, target) -> (3,) point X where they cross (m).
         windings: (active, target) -> the winding, oldest first.
         wraps: (cloth, control line) -> the wrap.
-        knots: the knot's strands, sorted -> (3,) place (m) where the last Tightening of them left the knot
+        knots: the knot's ropes and cloth lines, sorted (a run R[i0:i1] counts as its rope R) -> (3,) place (m) where the last Tightening of them left the knot
             (the median of the places its strands touch, ``geometry.knots.knot_centre``).
     """
 
