@@ -35,12 +35,12 @@ class Calibration:
 
     @ti.kernel
     def _init(self):
-        for k in self.x:
+        for k in range(self.x.shape[0]):
             self.x[k] = ti.math.vec3(k % self.n * self.rest, 1.0, k // self.n * self.rest)
 
     @ti.kernel
     def _sweep(self, dt: ti.f32):
-        for k in self.x:
+        for k in range(self.x.shape[0]):
             i = k % self.n
             j = k // self.n
             p = self.x[k] + ti.math.vec3(0.0, -9.81 * dt * dt, 0.0)
@@ -57,7 +57,7 @@ class Calibration:
                         acc += -0.5 * (length - self.rest) * e / length
                         cnt += 1
             self.x_new[k] = p + acc / ti.max(cnt, 1)
-        for k in self.x:
+        for k in range(self.x.shape[0]):
             self.x[k] = self.x_new[k]
 
     def frame(self) -> None:
@@ -124,7 +124,8 @@ def bench_level(path: str, frames: int = 60, overrides: dict | None = None, prof
 
 def machine() -> dict:
     return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "arch": runtime.current_arch(), "backend_reason": runtime.reason(), "fast_compile": runtime.fast_compile()}
+            "arch": runtime.current_arch(), "backend_reason": runtime.reason(), "fast_compile": runtime.fast_compile(),
+            "cpu_threads": runtime.threads(), "serial_loops": runtime.serial_loops()}
 
 
 def main(args) -> int:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import contextlib
 import gc
 import os
+import pathlib
+import time
 import weakref
 
 import taichi as ti
@@ -18,7 +20,8 @@ from sandbox import backends
 
 ARCHES = ("auto", "cpu", "cuda", "vulkan", "metal")
 
-_state: dict = {"arch": None, "requested": None, "fast_compile": False, "debug": False, "reason": None}
+_state: dict = {"arch": None, "requested": None, "fast_compile": False, "debug": False, "reason": None,
+                "threads": None, "serial_loops": False}
 
 _open: "weakref.WeakSet" = weakref.WeakSet()
 """The worlds built and not yet closed (``release`` refuses while any is open)."""
@@ -204,6 +207,43 @@ def _memoize_source_positions() -> None:
 
 _memoize_source_positions()
 
+
+def _serialize_loops_when_asked() -> None:
+    """Compile every loop to run in the thread that launches its kernel while ``_state["serial_loops"]`` is set.
+
+    Taichi's CPU backend hands each top-level loop of a kernel to its thread
+    pool, even with one thread, and waits for it: a wake-up of another
+    thread per loop, 130-170 us on this 2-core virtual machine (docs/benchmarks.md,
+    "CPU threads"). A substep runs dozens of loops over a few hundred
+    particles, so a frame of a rope level spent most of its time waking
+    threads. ``ti.loop_config(serialize=True)`` compiles a range loop to
+    run in the launching thread (5 us); this applies it to every loop,
+    which is what one thread would do anyway. Taichi cannot serialize a
+    loop over a field (``for i in field``): it is left as it is, and
+    kernels loop over ``range(n)`` instead.
+    """
+    import ast
+
+    from taichi.lang import misc
+    from taichi.lang.ast import ast_transformer as at
+
+    original = at.ASTTransformer.build_For
+    if getattr(original, "_serial", False):
+        return
+
+    def build_for(ctx, node):
+        it = node.iter
+        ranged = isinstance(it, ast.Call) and isinstance(it.func, ast.Name) and it.func.id == "range"
+        if _state["serial_loops"] and (ranged or at.ASTTransformer.get_decorator(ctx, it) == "ndrange"):
+            misc._parallelize(1)  # what ti.loop_config(serialize=True) sets, for the loop built next
+        return original(ctx, node)
+
+    build_for._serial = True
+    at.ASTTransformer.build_For = staticmethod(build_for)
+
+
+_serialize_loops_when_asked()
+
 KERNEL_CACHE_BYTES = 2**30
 """Size of Taichi's on-disk kernel cache (least recently used kernels go past it). Taichi's own 100 MB
 holds about one level's kernels in both compile modes: a sweep over many levels and settings would
@@ -216,6 +256,16 @@ substep is one fused kernel, and that pass grows faster than the kernel's length
 rope_hang's first frame compiles in 14 s instead of 38 s and drape_box's in 17 s instead of 37 s
 (beside a sweep), and frames take the same time within noise (docs/benchmarks.md, "Start"). It changes float
 rounding, as fast compile does. GPU backends keep it (not measured there)."""
+
+
+CPU_FAST_MATH = False
+"""LLVM's fast-math on the CPU (reassociation, fused multiply-adds across statements). With loops
+serialized, consecutive passes of one kernel compile into one function, and fast-math then rounds a
+pass differently by what it is fused with: rope_hang's frames drifted apart from frame 13 between a
+substep in one kernel and the same passes in kernels of two (1e-6 m, then 6 cm by frame 30). Without
+it the frames are bitwise the same however the passes are grouped, and frames take the same time
+within noise (rope_hang 26.0 against 31.2 ms, square_knot 28.4 against 25.2, wrap_box_two 108.8 against
+112.4, p50 over 30 frames, one thread). GPU backends keep it (not measured there)."""
 
 
 def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None = None) -> str:
@@ -232,6 +282,13 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
             slower (docs/how-it-works.md, "Compile time"). None reads the environment
             variable ``SANDBOX_FAST_COMPILE`` (``1`` for on, ``0`` or unset
             for off), so that the processes a run starts follow it.
+
+    On the CPU, Taichi runs ``SANDBOX_THREADS`` threads (default 1). With
+    one, every loop runs in the launching thread (``_serialize_loops_when_asked``):
+    the shipped levels run 1-5x faster than on two threads of a 2-core
+    machine (docs/benchmarks.md, "CPU threads"). More threads pay where
+    loops are long (a cloth of tens of thousands of particles on a machine
+    with many cores): measure with ``sandbox bench``.
 
     Returns:
         The name of the backend in use (``x64``, ``cuda``, ...).
@@ -265,12 +322,14 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
         )
     candidates, why = _resolve(arch)
     kwargs = {}
-    if "SANDBOX_THREADS" in os.environ:
-        kwargs["cpu_max_num_threads"] = int(os.environ["SANDBOX_THREADS"])
+    threads = _threads()
+    kwargs["cpu_max_num_threads"] = threads
+    _clear_stale_cache_locks()
     if fast_compile:
         kwargs["advanced_optimization"] = False
     if candidates[0] == "cpu":
         kwargs["cfg_optimization"] = CPU_CFG_OPTIMIZATION
+        kwargs["fast_math"] = CPU_FAST_MATH
     ti.init(
         arch=[_TI_ARCH[a] for a in candidates] if len(candidates) > 1 else _TI_ARCH[candidates[0]],
         debug=debug,
@@ -291,7 +350,51 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
     _state["reason"] = why
     _state["fast_compile"] = bool(fast_compile)
     _state["debug"] = bool(debug)
+    _state["threads"] = threads
+    _state["serial_loops"] = running in ("x64", "arm64") and threads == 1
     return running
+
+
+STALE_LOCK_S = 60.0
+"""Age (s) past which a lock file in Taichi's kernel cache is stale. Taichi holds it while it reads or
+writes the cache's index (well under a second); a process killed meanwhile leaves it behind, and every
+later process then neither reads nor writes the cache (it warns "Lock ... failed") and compiles every
+kernel afresh: 10-40 s per start instead of about 1."""
+
+
+def _clear_stale_cache_locks() -> list[pathlib.Path]:
+    """Remove lock files older than ``STALE_LOCK_S`` from Taichi's kernel cache folder; returns those removed."""
+    folder = pathlib.Path(os.environ.get("TI_OFFLINE_CACHE_FILE_PATH")
+                          or pathlib.Path.home() / ".cache" / "taichi" / "ticache")
+    removed = []
+    for lock in [*folder.glob("*.lock"), *folder.glob("*/*.lock")]:
+        with contextlib.suppress(OSError):  # gone meanwhile, or not ours to remove: Taichi says so itself
+            if time.time() - lock.stat().st_mtime > STALE_LOCK_S:
+                lock.unlink()
+                removed.append(lock)
+    return removed
+
+
+def _threads() -> int:
+    """CPU threads from ``SANDBOX_THREADS`` (default 1).
+
+    Raises:
+        ValueError: it is set to something other than a whole number of at least 1.
+    """
+    value = os.environ.get("SANDBOX_THREADS", "1").strip()
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"SANDBOX_THREADS={value!r} is not allowed; allowed: a whole number of CPU threads, 1 or more")
+    return int(value)
+
+
+def threads() -> int | None:
+    """CPU threads Taichi runs (``SANDBOX_THREADS``), or None before ``init``."""
+    return _state["threads"] if _state["arch"] is not None else None
+
+
+def serial_loops() -> bool:
+    """Whether kernels compile their loops to run in the launching thread (the CPU, one thread)."""
+    return _state["serial_loops"]
 
 
 def _env_flag(name: str) -> bool:

@@ -366,3 +366,96 @@ def test_cpu_runtime_skips_the_cfg_pass_and_says_why_it_runs_there():
 
     assert ti.lang.impl.current_cfg().cfg_optimization is runtime.CPU_CFG_OPTIMIZATION is False
     assert runtime.reason() == "requested cpu"
+
+
+ORDER_SCRIPT = """
+import json, os, sys
+sys.path.insert(0, os.getcwd())
+from sandbox import runtime
+runtime.init("cpu")
+import numpy as np, taichi as ti
+n = 1 << 16
+order, counter = ti.field(ti.i32, shape=n), ti.field(ti.i32, shape=())
+@ti.kernel
+def take():
+    for i in range(n):
+        order[i] = ti.atomic_add(counter[None], 1)
+take()
+print(json.dumps({"threads": runtime.threads(), "serial": runtime.serial_loops(),
+                  "in_order": bool((order.to_numpy() == np.arange(n)).all())}))
+"""
+
+
+def _run_threads(value: str, folder: pathlib.Path, **env):
+    import os
+    import subprocess
+    import sys
+
+    script = folder / "order.py"  # Taichi reads a kernel's source from its file
+    script.write_text(ORDER_SCRIPT)
+    env = {**os.environ, **env, "SANDBOX_THREADS": value}
+    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=ROOT, env=env,
+                          timeout=300)
+
+
+def test_one_cpu_thread_runs_each_loop_in_order_and_more_threads_share_it(tmp_path):
+    """The CPU runs ``SANDBOX_THREADS`` threads, 1 unless set: then loops compile to run in the launching thread, their
+    iterations in order (each takes the next count); with two, Taichi's thread pool runs them. Anything but a whole
+    number of at least one is refused, saying what is allowed."""
+    import json
+
+    from sandbox import runtime
+
+    assert runtime.threads() == 1 and runtime.serial_loops()  # this test process: the default
+    one, two = (json.loads(_run_threads(v, tmp_path).stdout.strip().splitlines()[-1]) for v in ("1", "2"))
+    assert one == {"threads": 1, "serial": True, "in_order": True}
+    assert (two["threads"], two["serial"]) == (2, False)
+    bad = _run_threads("0", tmp_path)
+    assert bad.returncode != 0
+    assert "SANDBOX_THREADS='0' is not allowed; allowed: a whole number of CPU threads, 1 or more" in bad.stderr
+
+
+def test_kernels_loop_over_ranges_which_one_thread_runs_in_the_launching_thread():
+    """Every loop in a kernel or Taichi function loops over ``range``, ``ti.ndrange`` or ``ti.static``: Taichi hands a
+    loop over a field (``for i in field``) to its thread pool even when told to serialize it, a thread wake-up per
+    loop (``runtime._serialize_loops_when_asked``)."""
+    import ast
+
+    found = []
+    for path in sorted((ROOT / "sandbox").rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        for fn in ast.walk(tree):
+            if not isinstance(fn, ast.FunctionDef) or not any(
+                    ast.unparse(d).split("(")[0] in ("ti.kernel", "ti.func") for d in fn.decorator_list):
+                continue
+            for node in ast.walk(fn):
+                if isinstance(node, ast.For):
+                    it = node.iter
+                    head = ast.unparse(it.func) if isinstance(it, ast.Call) else ""
+                    if head not in ("range", "ti.ndrange", "ti.static"):
+                        found.append(f"{path.relative_to(ROOT)}:{node.lineno}: for ... in {ast.unparse(it)}")
+    assert not found, "\n".join(found)
+
+
+def test_a_stale_lock_in_the_kernel_cache_is_removed_and_the_cache_written_again(tmp_path, monkeypatch):
+    """A process killed while it held the kernel cache's lock leaves the lock file: Taichi then neither reads nor writes
+    the cache in any later process. A lock older than ``runtime.STALE_LOCK_S`` is removed at start; a fresh one (a
+    process writing now) is left alone."""
+    import os
+    import time
+
+    from sandbox import runtime
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    lock = cache / "ticache.lock"
+    lock.touch()
+    monkeypatch.setenv("TI_OFFLINE_CACHE_FILE_PATH", str(cache))
+    assert runtime._clear_stale_cache_locks() == [] and lock.exists()  # fresh: someone is writing
+    old = time.time() - runtime.STALE_LOCK_S - 5
+    os.utime(lock, (old, old))
+    run = _run_threads("1", tmp_path, TI_OFFLINE_CACHE_FILE_PATH=str(cache))
+    assert run.returncode == 0, run.stderr
+    assert not lock.exists()
+    assert list(cache.glob("*.tic")), "the process wrote its kernels to the cache"
+    assert "Lock" not in run.stderr + run.stdout

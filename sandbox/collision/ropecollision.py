@@ -119,7 +119,7 @@ class RopeCollision:
 
     @ti.func
     def _midpoints(self):
-        for s in self.mid:
+        for s in range(self.mid.shape[0]):
             self.mid[s] = 0.5 * (self.st.x[self.model.segment[s][0]] + self.st.x[self.model.segment[s][1]])
 
     @ti.func
@@ -230,7 +230,7 @@ class RopeCollision:
     @ti.func
     def _count(self):
         """Contacts on each particle (from the counting gather), at least 1."""
-        for i in self.count:
+        for i in range(self.count.shape[0]):
             cnt = 0
             if self.seg_a[i] >= 0:
                 cnt += self.c0[self.seg_a[i]]
@@ -240,7 +240,7 @@ class RopeCollision:
 
     @ti.func
     def _apply(self):
-        for i in self.st.x:
+        for i in range(self.st.x.shape[0]):
             sa = self.seg_a[i]
             sb = self.seg_b[i]
             acc = ti.math.vec3(0.0)
@@ -271,7 +271,7 @@ class RopeCollision:
     @ti.func
     def forget_f(self):
         """Clear the pushes summed so far (the prediction: a substep's pushes start from zero)."""
-        for i in self.push:
+        for i in range(self.push.shape[0]):
             self.push[i] = ti.math.vec3(0.0)
 
     @ti.func

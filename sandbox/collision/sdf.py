@@ -340,7 +340,7 @@ class ObjectSet:
                      g_org: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
                      g_h: ti.types.ndarray(dtype=ti.f32, ndim=1),
                      values: ti.types.ndarray(dtype=ti.f32, ndim=1)):
-        for k in kind:
+        for k in range(kind.shape[0]):
             self.kind[k] = kind[k]
             self.shape_par[k] = par[k]
             self.center[k] = center[k]
@@ -350,7 +350,7 @@ class ObjectSet:
             self.grid_res[k] = g_res[k]
             self.grid_origin[k] = g_org[k]
             self.grid_h[k] = g_h[k]
-        for i in values:
+        for i in range(values.shape[0]):
             self.grid_values[i] = values[i]
 
     @ti.kernel
@@ -358,7 +358,7 @@ class ObjectSet:
                    rot: ti.types.ndarray(dtype=ti.math.mat3, ndim=1),
                    vel: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
                    vel_mat: ti.types.ndarray(dtype=ti.math.mat3, ndim=1)):
-        for k in pos:
+        for k in range(pos.shape[0]):
             self.pos[k] = pos[k]
             self.rot[k] = rot[k]
             self.vel_lin[k] = vel[k]
@@ -491,13 +491,13 @@ class ObjectSet:
                       d: ti.types.ndarray(dtype=ti.f32, ndim=1),
                       n: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
                       k: ti.types.ndarray(dtype=ti.i32, ndim=1)):
-        for i in pts:
+        for i in range(pts.shape[0]):
             d[i], n[i], k[i] = self.query(pts[i])
 
     @ti.kernel
     def _velocity_kernel(self, k: ti.i32, pts: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
                          v: ti.types.ndarray(dtype=ti.math.vec3, ndim=1)):
-        for i in pts:
+        for i in range(pts.shape[0]):
             v[i] = self.velocity_at(k, pts[i])
 
     # --- Python side ------------------------------------------------------------

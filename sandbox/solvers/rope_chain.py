@@ -382,7 +382,7 @@ class ChainProjection:
         inside, to first order, and the contacts move k no further out than
         that (1e30 off held stretches). O(k) per chain.
         """
-        for i in taut:
+        for i in range(taut.shape[0]):
             taut[i] = 0.0
             room[i] = 1e30
         if ti.static(self.has_ropes):
@@ -424,9 +424,9 @@ class ChainProjection:
     def _peel(self):
         """Free the contacts whose chain neighbour has left the surface (see the module docstring)."""
         x = ti.static(self.st.x)
-        for i in self.peeled:
+        for i in range(self.peeled.shape[0]):
             self.peeled[i] = 0
-        for j in self.link_a:
+        for j in range(self.link_a.shape[0]):
             a = self.link_a[j]
             b = self.link_b[j]
             if a >= ti.static(self.cloth_start):

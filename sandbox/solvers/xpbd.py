@@ -359,7 +359,7 @@ class XPBDSolver:
     def _predict(self, dt: ti.f32, frac: ti.f32):
         st = self.st
         ctl = self.ctl
-        for i in st.x:
+        for i in range(st.x.shape[0]):
             st.x_prev[i] = st.x[i]
             mode = ctl.driven[i]
             if mode == 1:
@@ -390,7 +390,7 @@ class XPBDSolver:
                 v *= ti.max(1.0 - self.model.damping[i] * dt, 0.0)
                 st.v[i] = v
                 st.x[i] = st.x[i] + dt * v
-        for e in st.lam:
+        for e in range(st.lam.shape[0]):
             st.lam[e] = 0.0
         if ti.static(self.has_ropecol):
             self.ropecol.forget_f()
@@ -398,7 +398,7 @@ class XPBDSolver:
     @ti.func
     def _settle(self):
         # x_prev = x: the rope contact pass measures no slip (friction) in step 0.
-        for i in self.st.x:
+        for i in range(self.st.x.shape[0]):
             self.st.x_prev[i] = self.st.x[i]
 
     @ti.func
@@ -420,7 +420,7 @@ class XPBDSolver:
     def _contacts(self, dt: ti.f32, gh: ti.f32, gmu: ti.f32):
         st = self.st
         mdl = self.model
-        for i in st.x:
+        for i in range(st.x.shape[0]):
             if self.w[i] > 0.0:
                 x = st.x[i]
                 r = mdl.radius[i]
@@ -447,7 +447,7 @@ class XPBDSolver:
     @ti.func
     def _velocities(self, inv_dt: ti.f32):
         st = self.st
-        for i in st.x:
+        for i in range(st.x.shape[0]):
             v = (st.x[i] - st.x_prev[i]) * inv_dt
             if ti.static(self.has_ground or self.has_objects):
                 if self.contacts.dv[i] > 0.0:
@@ -571,7 +571,7 @@ class XPBDSolver:
 
     @ti.kernel
     def _begin_frame_k(self):
-        for i in self.st.x:
+        for i in range(self.st.x.shape[0]):
             self.w[i] = self.model.inv_mass[i] * ti.cast(self.ctl.driven[i] != 1, ti.f32)
             self.ctl.src[i] = self.st.x[i]
 
@@ -580,9 +580,9 @@ class XPBDSolver:
         bad = 0
         st = self.st
         mdl = self.model
-        for g in self.strain:
+        for g in range(self.strain.shape[0]):
             self.strain[g] = 0.0
-        for e in mdl.kind:
+        for e in range(mdl.kind.shape[0]):
             if mdl.kind[e] == 0 and mdl.rest[e] > 0.0:
                 a = mdl.edge[e][0]
                 b = mdl.edge[e][1]
@@ -591,7 +591,7 @@ class XPBDSolver:
                 if self.stretch_only[g]:
                     s = ti.max(s, 0.0)
                 ti.atomic_max(self.strain[g], ti.abs(s))
-        for i in st.x:
+        for i in range(st.x.shape[0]):
             x = st.x[i]
             if x.norm() < 1e6:  # false for NaN and inf as well
                 dep = 0.0
