@@ -265,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--samples", type=int, metavar="N", help="N random points of --grid's axes instead of the product")
     sw.add_argument("--seed", type=int, metavar="S", help="seed of --samples (default 0)")
     sw.add_argument("--workers", type=int, metavar="K", help="runs at a time (default: this machine's cores)")
-    sw.add_argument("--threads", type=int, metavar="T", help="CPU threads per run (default: cores / workers)")
+    sw.add_argument("--threads", type=int, metavar="T", help="CPU threads per run (default 1: docs/benchmarks.md, 'CPU threads')")
     sw.add_argument("--backend", choices=("local", "ray"), default="local")
     sw.add_argument("--address", help="Ray cluster to join (default: start a local Ray instance)")
     sw.add_argument("--shared", action="store_true", help="ray: --out is on a file system every node sees")

@@ -217,7 +217,9 @@ def _serialize_loops_when_asked() -> None:
     "CPU threads"). A substep runs dozens of loops over a few hundred
     particles, so a frame of a rope level spent most of its time waking
     threads. ``ti.loop_config(serialize=True)`` compiles a range loop to
-    run in the launching thread (5 us); this applies it to every loop,
+    run in the launching thread (a launch of one such loop 17 us, each more
+    loop in it about 7 us); this applies it to every range loop, of this
+    process's kernels and of any other kernel it compiles,
     which is what one thread would do anyway. Taichi cannot serialize a
     loop over a field (``for i in field``): it is left as it is, and
     kernels loop over ``range(n)`` instead.
@@ -285,8 +287,9 @@ def init(arch: str = "auto", *, debug: bool = False, fast_compile: bool | None =
 
     On the CPU, Taichi runs ``SANDBOX_THREADS`` threads (default 1). With
     one, every loop runs in the launching thread (``_serialize_loops_when_asked``):
-    the shipped levels run 1-5x faster than on two threads of a 2-core
-    machine (docs/benchmarks.md, "CPU threads"). More threads pay where
+    of five shipped levels measured against two threads of a 2-core machine,
+    the rope levels ran 4-5x faster, the cloth levels from 5 % slower to
+    1.3x faster (docs/benchmarks.md, "CPU threads"). More threads pay where
     loops are long (a cloth of tens of thousands of particles on a machine
     with many cores): measure with ``sandbox bench``.
 
@@ -382,7 +385,7 @@ def _threads() -> int:
         ValueError: it is set to something other than a whole number of at least 1.
     """
     value = os.environ.get("SANDBOX_THREADS", "1").strip()
-    if not value.isdigit() or int(value) < 1:
+    if not value.isdecimal() or int(value) < 1:
         raise ValueError(f"SANDBOX_THREADS={value!r} is not allowed; allowed: a whole number of CPU threads, 1 or more")
     return int(value)
 
@@ -394,7 +397,7 @@ def threads() -> int | None:
 
 def serial_loops() -> bool:
     """Whether kernels compile their loops to run in the launching thread (the CPU, one thread)."""
-    return _state["serial_loops"]
+    return _state["serial_loops"] and _state["arch"] is not None
 
 
 def _env_flag(name: str) -> bool:

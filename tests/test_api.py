@@ -422,7 +422,7 @@ def test_kernels_loop_over_ranges_which_one_thread_runs_in_the_launching_thread(
     import ast
 
     found = []
-    for path in sorted((ROOT / "sandbox").rglob("*.py")):
+    for path in sorted([*(ROOT / "sandbox").rglob("*.py"), *(ROOT / "shaders").rglob("*.py")]):
         tree = ast.parse(path.read_text())
         for fn in ast.walk(tree):
             if not isinstance(fn, ast.FunctionDef) or not any(

@@ -535,14 +535,14 @@ def test_one_retry_is_enough():
 def test_unfused_iterations_step_like_the_fused_substep(monkeypatch):
     """Past FUSE_ITERATIONS a substep runs as several launches instead of one unrolled kernel (whose
     compile time grows too fast: a rope scene at 8 iterations compiled for minutes). At 3 iterations
-    on rope_hang (ropes, an object, the ground), the whole substep in one kernel, in chunks of 2 (one
-    chunk and a rest) and of 1 (the shipped chunk) give the same result: the same passes in the same
-    order. So does each launch cut into kernels of at most 2 passes (``MAX_PASSES``)."""
+    on rope_hang (ropes, an object, the ground), the whole substep in one kernel and in chunks of 1
+    (the shipped chunk) give the same result: the same passes in the same order. So does each launch
+    cut into kernels of at most 2 passes (``MAX_PASSES``)."""
     from sandbox.solvers import xpbd
 
     overrides = {"sim.iterations": 3}
     finals = []
-    for fuse, chunks, most in ((3, (1, 0), 99), (2, (1, 1), 99), (1, (3, 0), xpbd.MAX_PASSES), (3, (1, 0), 2)):
+    for fuse, chunks, most in ((3, (1, 0), 99), (1, (3, 0), xpbd.MAX_PASSES), (3, (1, 0), 2)):
         monkeypatch.setattr(xpbd, "FUSE_ITERATIONS", fuse)
         monkeypatch.setattr(xpbd, "MAX_PASSES", most)
         with Sandbox.from_level(LEVELS / "rope_hang.yaml", arch="cpu", overrides=overrides) as sim:

@@ -12,6 +12,8 @@ import pytest
 from shaders import Camera, MeshItem, Renderer, RenderScene, auto_camera, crease_split, tube_mesh
 from shaders.scene import rotation_minimising_frames
 
+pytestmark = pytest.mark.keeps_runtime  # the module's Renderer holds Taichi arrays outside a world
+
 GOLDEN = pathlib.Path(__file__).parent / "golden"
 UPDATE = os.environ.get("SANDBOX_UPDATE_GOLDEN") == "1"
 

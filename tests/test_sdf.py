@@ -9,6 +9,8 @@ import trimesh
 from sandbox.collision.sdf import FAR, ObjectInstance, ObjectSet
 from sandbox.objects import build_mesh
 
+pytestmark = pytest.mark.keeps_runtime  # the module's ObjectSets hold fields outside a world
+
 SPACING = 2.0  # m between objects, far more than their size: each point sees its own object
 FD_STEP = 1e-6  # m, central differences of the float64 closed forms
 TRILINEAR_BOUND = math.sqrt(3.0) / 2.0

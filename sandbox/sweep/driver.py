@@ -44,7 +44,7 @@ class SweepOptions:
     timeout: float | None = DEFAULT_TIMEOUT
     frames: int | None = None
     frames_every: int = 0
-    threads: int = 0  # CPU threads per run; 0: cores // workers
+    threads: int = 0  # CPU threads per run; 0: one (loops in the launching thread, sandbox.runtime)
     retry_errors: bool = False
     progress: bool = True
     plots: bool = True
@@ -127,7 +127,7 @@ def run_sweep(levels: list[str | pathlib.Path], variants_of: Callable[[dict], li
     prepared = prepare(levels, variants_of, out, sweep_base=sweep_base, source=source, frames=opts.frames)
     env = {k: os.environ[k] for k in ("SANDBOX_LIMITS", "SANDBOX_MESH_DIRS") if os.environ.get(k)}
     workers = opts.workers or cores()
-    threads = opts.threads or max(1, cores() // workers)
+    threads = opts.threads or 1
     tables = {}
     jobs = []
     skipped = 0
