@@ -459,3 +459,27 @@ def test_a_stale_lock_in_the_kernel_cache_is_removed_and_the_cache_written_again
     assert not lock.exists()
     assert list(cache.glob("*.tic")), "the process wrote its kernels to the cache"
     assert "Lock" not in run.stderr + run.stdout
+
+
+def test_one_cpu_thread_compiles_every_range_loop_serial():
+    """With one thread every range loop compiles as a serial loop, not only those marked
+    ``ti.loop_config(serialize=True)``: Taichi allows ``break`` in a kernel's outermost loop only then (with
+    two threads, this kernel does not compile)."""
+    from sandbox import runtime
+
+    assert runtime.serial_loops()
+    a, limit, found = ti.field(ti.f32, shape=8), ti.field(ti.f32, shape=()), ti.field(ti.i32, shape=())
+
+    @ti.kernel
+    def first_over():  # no annotations: this module's are strings (``from __future__ import annotations``)
+        found[None] = -1
+        for i in range(8):
+            if a[i] > limit[None]:
+                found[None] = i
+                break
+
+    a.from_numpy(np.arange(8, dtype=np.float32))
+    for lim, first in ((4.5, 5), (9.0, -1)):
+        limit[None] = lim
+        first_over()
+        assert found[None] == first
