@@ -259,7 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--out", default="runs/sweep", help="sweep folder (default runs/sweep); a second run of the "
                                                        "same sweep goes on where it stopped")
     sw.add_argument("--standard", action="store_true",
-                    help="the shipped set: 6 placements x {as shipped, fast compile, substeps +25 %%, "
+                    help="the shipped set: 6 placements x {as shipped, nudged 1 um, substeps +25 %%, "
                          "iterations +1}, plus object swaps for levels that wrap an object in cloth")
     sw.add_argument("--grid", metavar="FILE", help="a sweep file of axes; runs their product")
     sw.add_argument("--samples", type=int, metavar="N", help="N random points of --grid's axes instead of the product")

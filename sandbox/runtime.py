@@ -256,8 +256,9 @@ CPU_CFG_OPTIMIZATION = False
 """Taichi's control-flow-graph optimisation (store-to-load forwarding, dead stores) on the CPU. A
 substep is one fused kernel, and that pass grows faster than the kernel's length: without it
 rope_hang's first frame compiles in 14 s instead of 38 s and drape_box's in 17 s instead of 37 s
-(beside a sweep), and frames take the same time within noise (docs/benchmarks.md, "Start"). It changes float
-rounding, as fast compile does. GPU backends keep it (not measured there)."""
+(beside a sweep), and frames take the same time within noise (docs/benchmarks.md, "Start"). With it and
+fast-math off, fast compile gives the same frames bit for bit (square_knot's first 200). GPU backends keep it
+(not measured there)."""
 
 
 CPU_FAST_MATH = False

@@ -28,8 +28,7 @@ def pytest_configure(config):
     for a few frames): without Taichi's advanced optimisations a world
     compiles about 3x faster, and subprocesses the tests start inherit it.
     Runs that select the slow or benchmark tests keep full optimisation:
-    those run long chaotic scenes (a held knot, a fold) whose outcome turns
-    on the last bits of rounding, measured and recorded as shipped.
+    benchmarks time frames as shipped.
     """
     expr = config.getoption("markexpr") or ""
     default_run = "not slow" in expr and "not bench" in expr

@@ -79,11 +79,27 @@ def test_standard_set_has_six_placements_by_four_settings_and_swaps_for_wraps():
     """--standard: 24 runs per level; a level that wraps an object in cloth adds one swap per other shape."""
     knot = standard_variants(_level("self_knot"))
     assert len(knot) == 24 and len({json.dumps(v, sort_keys=True) for _, v in knot}) == 24
-    assert sum(1 for _, v in knot if v.get("compile") == "fast") == 6
+    assert sum(1 for _, v in knot if v.get("place.scene.nudge") == plan.NUDGE) == 6
     assert sum(1 for _, v in knot if "place.scene.turn" in v) == 4
     wrap = standard_variants(_level("wrap_box_two"))
     swaps = [v["swap.box"] for _, v in wrap if "swap.box" in v]
     assert len(wrap) == 24 + len(swaps) and "box" not in swaps and set(swaps) == set(placement.SWAP_SHAPES) - {"box"}
+
+
+def test_nudge_adds_to_the_shift_and_is_bounded():
+    """place.TARGET.nudge moves the target by that much along each axis on top of its shift; a nudge of more
+    than a millimetre is refused as a placement in disguise."""
+    base, shifted, both = plan.resolve(ROOT / "levels" / "rope_wind.yaml", [
+        ("", {}), ("", {"place.scene.shift": [0.02, 0.0, 0.0]}),
+        ("", {"place.scene.shift": [0.02, 0.0, 0.0], "place.scene.nudge": 1e-6})])
+    assert base.overrides == {} and set(both.overrides) == set(shifted.overrides)
+    moved = [np.subtract(both.overrides[k], shifted.overrides[k]) for k in shifted.overrides]
+    assert moved and all(np.allclose(d, 1e-6, rtol=0, atol=1e-12) for d in moved)
+    assert parse_sweep("version: 1\naxes:\n  place.scene.nudge: {range: [-1e-6, 1e-6], steps: 3}\n")[0].grid() \
+        == [-1e-6, 0.0, 1e-6]
+    with pytest.raises(SweepError) as err:
+        parse_sweep("version: 1\naxes:\n  place.box.nudge: [0.01]\n")
+    assert "at most 0.001" in str(err.value)
 
 
 def test_resolve_makes_relative_values_and_checks_each_variant():

@@ -10,10 +10,16 @@ An axis is one key with the values it takes:
 - ``place.TARGET.shift`` (``[dx, dy, dz]`` m) and ``place.TARGET.turn``
   (degrees about the vertical), TARGET ``scene`` or a body's name: a rigid
   placement (``sandbox.sweep.placement``);
+- ``place.TARGET.nudge`` (m): a further shift by this much along each axis,
+  added to the target's ``shift``. A micrometre is no physical change at a
+  rope's scale but changes the float rounding of every position: it
+  measures how much an outcome depends on rounding alone;
 - ``swap.OBJECT``: a shape name or ``mesh:PATH``, the object replaced by
   one of similar size;
 - ``compile``: ``full`` or ``fast`` (Taichi's advanced optimisations on or
-  off: it changes float rounding).
+  off). On the CPU, with fast-math and the CFG pass off
+  (``sandbox.runtime``), both compile to the same float operations and give
+  the same frames; a GPU backend is not measured.
 
 A sweep file holds the axes::
 
@@ -49,6 +55,11 @@ from sandbox.levels.issues import LevelIssue, format_path, syntax_issue
 from sandbox.sweep import placement
 
 COMPILE_MODES = ("full", "fast")
+NUDGE = 1e-6
+"""The standard set's rounding perturbation (m): the scene moved 1 um along each axis. Positions are
+about 0.3 m from the origin, where a float32 step is 3e-8 m, so every coordinate rounds differently."""
+MAX_NUDGE = 1e-3
+"""Largest ``nudge`` allowed (m): beyond a millimetre it is a placement, and ``shift`` says so."""
 SET_ROOTS = ("scene", "sim", "fsm", "macros", "success", "budget")
 """First parts of the level keys an axis may set."""
 TOP_KEYS = ("version", "description", "axes")
@@ -153,7 +164,7 @@ def _kind(key: str) -> str | None:
     parts = key.split(".")
     if key == "compile":
         return "compile"
-    if parts[0] == "place" and len(parts) == 3 and parts[2] in ("shift", "turn") and parts[1]:
+    if parts[0] == "place" and len(parts) == 3 and parts[2] in ("shift", "turn", "nudge") and parts[1]:
         return parts[2]
     if parts[0] == "swap" and len(parts) == 2 and parts[1]:
         return "swap"
@@ -172,6 +183,8 @@ def _value_problem(kind: str, value: Any, base: pathlib.Path) -> str | None:
         return f"{value!r} is not a compile mode; allowed: {', '.join(COMPILE_MODES)}"
     if kind == "shift" and not (isinstance(value, list) and len(value) == 3 and all(map(_is_number, value))):
         return f"{value!r} is not a shift; allowed: [dx, dy, dz] in m, finite numbers"
+    if kind == "nudge" and not (_is_number(value) and abs(value) <= MAX_NUDGE):
+        return f"{value!r} is not a nudge; allowed: a finite number of m, at most {MAX_NUDGE:g} in size"
     if kind == "turn" and not _is_number(value):
         return f"{value!r} is not a turn; allowed: degrees, a finite number"
     if kind == "swap":
@@ -228,7 +241,7 @@ def parse_sweep(text: str, *, source: str = "<string>", base_dir: pathlib.Path |
         kind = _kind(str(key))
         if kind is None:
             found.append((path, f"unknown axis {key!r}; allowed: compile, place.TARGET.shift, "
-                                f"place.TARGET.turn, swap.OBJECT, or a level key starting with "
+                                f"place.TARGET.turn, place.TARGET.nudge, swap.OBJECT, or a level key starting with "
                                 f"{', '.join(r + '.' for r in SET_ROOTS)}", True))
             continue
         if isinstance(values, dict) and "range" in values:
@@ -237,11 +250,13 @@ def parse_sweep(text: str, *, source: str = "<string>", base_dir: pathlib.Path |
             steps = values.get("steps", 2)
             if extra:
                 found.append((path, f"unknown key(s) {', '.join(extra)} in a range; allowed: range, steps", False))
-            elif kind not in ("set", "turn"):
+            elif kind not in ("set", "turn", "nudge"):
                 found.append((path, f"axis {key!r} takes a list of values, not a range", False))
             elif not (isinstance(rng, list) and len(rng) == 2 and all(map(_is_number, rng)) and rng[0] <= rng[1]):
                 found.append((path + ("range",), f"range must be [lo, hi] with finite numbers lo <= hi, got {rng!r}",
                               False))
+            elif kind == "nudge" and max(abs(rng[0]), abs(rng[1])) > MAX_NUDGE:
+                found.append((path + ("range",), f"a nudge is at most {MAX_NUDGE:g} m in size, got {rng!r}", False))
             elif not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
                 found.append((path + ("steps",), f"steps must be an integer >= 1, got {steps!r}", False))
             else:
@@ -306,7 +321,7 @@ STANDARD_PLACEMENTS: tuple[tuple[str, Variant], ...] = (
 
 STANDARD_SETTINGS: tuple[tuple[str, Variant], ...] = (
     ("as shipped", {}),
-    ("fast compile", {"compile": "fast"}),
+    ("nudged 1 um", {"place.scene.nudge": NUDGE}),
     ("substeps +25 %", {"sim.substeps": {"scale": 1.25}}),
     ("iterations +1", {"sim.iterations": {"add": 1}}),
 )
@@ -444,7 +459,7 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
             kind = _kind(key)
             if kind == "compile":
                 compile_mode = value
-            elif kind in ("shift", "turn"):
+            elif kind in ("shift", "turn", "nudge"):
                 shifts.setdefault(key.split(".")[1], {})[kind] = value
             elif kind == "swap":
                 obj = key.split(".", 1)[1]
@@ -477,8 +492,8 @@ def resolve(level: pathlib.Path, variants: list[tuple[str, Variant]], *, sweep_b
         placed = data
         for target, move in sorted(shifts.items(), key=lambda kv: kv[0] != placement.SCENE):  # scene first
             try:
-                moved = placement.placement_overrides(
-                    placed, target, move.get("shift", (0.0, 0.0, 0.0)), move.get("turn", 0.0))
+                shift = np.add(move.get("shift", (0.0, 0.0, 0.0)), move.get("nudge", 0.0)).tolist()
+                moved = placement.placement_overrides(placed, target, shift, move.get("turn", 0.0))
                 overrides.update(moved)
                 placed = json.loads(json.dumps(placed))  # a body placed after the scene moves from where it went
                 apply_overrides(placed, moved)
