@@ -24,6 +24,12 @@ from sandbox.model.strands import Strand, material_distance, parse_cloth_line, p
 Site = Union[str, int]
 Vec3 = tuple[float, float, float]
 _UP = np.array([0.0, 1.0, 0.0])
+CROSS_SETTLE_FRAMES = 20
+"""Frames a Crossing waits, its tips arrived, for the strands to settle before it moves the tips again."""
+X_REACH = 0.8
+"""Most of its reach a strand spends from its bottom to the crossing X: the rest carries it on beyond X."""
+MAX_REPLANS = 4
+"""Times a Crossing whose strands pass too far apart moves its tips again, toward closing that miss."""
 
 
 def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -43,7 +49,11 @@ def _other_end(site: Site) -> Site:
 def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0.9, elevation=45.0, across=None):
     """Where the tips go so that strands C and T cross at X (paper §4.1, Fig. 4).
 
-    X sits above the midpoint of the two bottom points at ``height``. In the
+    X sits above the midpoint of the two bottom points at ``height``, or
+    nearer the bottoms where a strand's rope could not reach it: no further
+    from either bottom than ``X_REACH`` of its reach (``slack`` of the rope
+    between bottom and tip; a short tail left by a first half knot crosses
+    lower). In the
     frame x (horizontal, from C's bottom towards T's), y (up), z = x cross y,
     C passes X at +z * sign * gap / 2 and T at -z * sign * gap / 2; beyond X
     each strand rises at ``elevation`` degrees towards the other's side, so
@@ -71,6 +81,8 @@ def crossing_targets(base_c, base_t, len_c, len_t, *, height, sign, gap, slack=0
     xhat = _unit(d, np.array([1.0, 0.0, 0.0]))
     zhat = np.cross(xhat, _UP)
     x = 0.5 * (base_c + base_t) + height * _UP
+    for _ in range(16):  # alternate projections onto the two balls of reach (the nearest point of the second
+        x = _within(_within(x, base_c, X_REACH * slack * len_c), base_t, X_REACH * slack * len_t)  # where apart)
     el = np.radians(elevation)
     out = []
     for base, length, side, s in ((base_c, len_c, 1.0, sign), (base_t, len_t, -1.0, -sign)):
@@ -288,6 +300,17 @@ class Crossing(Maneuver):
     are there and the strands pass within ``gap`` + radii of each other; the
     tips stay held. Where they pass closest is recorded as the crossing for
     a following ``Winding``.
+
+    The strands sag and bend on their way, so tips that arrive where they
+    were planned may leave the strands passing further apart than that
+    (above or beside each other). The hands then close the miss: once the
+    strands have settled (``CROSS_SETTLE_FRAMES``), each moving tip goes on along
+    the line between the two closest points, toward the other strand, by
+    its share of the miss over how far out along its strand the closest
+    point lies (a tip moves a point halfway down its strand by half as
+    much), within the same reach as its waypoints. At most ``MAX_REPLANS``
+    times; the Crossing fails only when the strands still miss 4 s after
+    the last move.
     """
 
     name = "Crossing"
@@ -341,7 +364,7 @@ class Crossing(Maneuver):
         if np.linalg.norm(_flat(bt - bc)) < 4.0 * (self.c.radius + self.t.radius):
             # Both strands leave one knot: C's tip goes over to T's tip's side.
             across = _flat(x[tip_t_idx].mean(axis=0) - x[tip_c_idx].mean(axis=0))
-        self.x, tip_c, tip_t, self.xhat, zhat = crossing_targets(
+        self.x, tip_c, tip_t, self.xhat, self.zhat = crossing_targets(
             bc, bt, len_c, len_t, height=p.height, sign=p.sign, gap=gap, slack=p.slack,
             across=across)
         plans = [(p.active, p.active_tip, tip_c, p.sign)]
@@ -349,13 +372,16 @@ class Crossing(Maneuver):
             plans.append((p.target, p.target_tip, tip_t, -p.sign))
         bases = (bc, bt)
         reach = (p.slack * len_c, p.slack * len_t)
+        self.bases, self.reach, self.n_tips = bases, reach, len(plans)
+        self.replans, self.waited = 0, 0
+        self.misses: list[float] = []  # how far apart the strands passed each time the tips were moved again (m)
         for k, (body, site, goal, s) in enumerate(plans):
             idx = w.site_particles(body, site)
             pos = x[idx].mean(axis=0)
-            side = s * (0.5 * gap + 2.0 * max(self.c.radius, self.t.radius)) * zhat
+            side = s * (0.5 * gap + 2.0 * max(self.c.radius, self.t.radius)) * self.zhat
             up = pos + p.lift * _UP
-            up_side = up - float((up - self.x) @ zhat) * zhat + side  # into its own z plane
-            ways = [up, up_side, goal + (side - s * 0.5 * gap * zhat), goal]
+            up_side = up - float((up - self.x) @ self.zhat) * self.zhat + side  # into its own z plane
+            ways = [up, up_side, goal + (side - s * 0.5 * gap * self.zhat), goal]
             # No waypoint further from the bottom than the rope allows.
             ways = [_within(q, bases[k], max(reach[k], float(np.linalg.norm(pos - bases[k])))) for q in ways]
             self.moves.append((idx, pos, ways))
@@ -540,7 +566,7 @@ class Crossing(Maneuver):
             w.control.drive(idx, np.repeat(pos[None], len(idx), axis=0))
             arrived &= not ways
         self.progress = min(1.0, self.travelled / self.total)
-        late = self.ticks > 4 * w.fps + self.total / p.speed * w.fps
+        late = self.ticks > 4 * w.fps + (self.total / p.speed + self.replans * CROSS_SETTLE_FRAMES / w.fps) * w.fps
         if not arrived:
             if late:  # a hand held back on its way (by a surface it keeps clear of) for 4 s past its plan
                 stuck = [(i, pos, ways[0]) for i, pos, ways in self.moves if ways]
@@ -557,16 +583,61 @@ class Crossing(Maneuver):
             # below the planned X): that is where the winding starts.
             w.record.crossings[(p.active, p.target)] = 0.5 * (at_c + at_t)
             self.progress = 1.0
+            if self.replans:
+                self.note = f"the tips were moved again {self.replans} times to close misses of {self.misses} m"
             return Status.DONE
+        if tips_ok and self.replans < MAX_REPLANS:
+            self.waited += 1
+            if self.waited >= CROSS_SETTLE_FRAMES:
+                self.waited = 0
+                self.misses.append(round(near, 4))
+                self.replans = self.replans + 1 if self._close_miss(x) else MAX_REPLANS
+                return Status.RUNNING
         if late:
             self.message = (f"the strands pass {near:.3f} m apart after the tips arrived "
-                            f"(a crossing needs at most {self.gap + self.c.radius + self.t.radius:.3f} m)")
+                            f"(a crossing needs at most {self.gap + self.c.radius + self.t.radius:.3f} m; "
+                            f"the tips were moved again {self.replans} times to close it)")
             held = sorted(set(self.limits))
             if held:
                 self.message += "; held back by " + ", ".join(
                     f"{body}'s particle {h} (held, {abs(m - h)} rods from the moved particle {m})" for body, m, h in held)
             return Status.FAILED
         return Status.RUNNING
+
+    def _close_miss(self, x: np.ndarray) -> bool:
+        """Send the tips on so that each strand passes where the crossing was planned: C at X + ``sign`` d
+        ``zhat``, T at X - ``sign`` d ``zhat`` (both tips moving; d is half of r_C + r_T + gap / 2), or C at
+        that distance in front of where T passes nearest X (T's tip held). Each tip goes on by its strand's
+        error there over how far out along the strand that point lies (a point halfway down moves half as much
+        as the tip), within the reach its waypoints had. False where no tip can move a millimetre."""
+        w = self.world
+        apart = self.c.radius + self.t.radius + 0.5 * self.gap
+        front = self.params.sign * self.zhat
+        parts = (self.c_cross, self.t_cross)
+        if self.n_tips == 2:
+            aims = [self.x + 0.5 * apart * front, self.x - 0.5 * apart * front]
+        else:
+            xt = x[self.t_cross.idx]
+            aims = [xt[int(np.argmin(np.linalg.norm(xt - self.x, axis=1)))] + apart * front]
+        for k in range(self.n_tips):
+            idx, pos, _ = self.moves[k]
+            pts = x[parts[k].idx]
+            at = pts[int(np.argmin(np.linalg.norm(pts - aims[k], axis=1)))]
+            base = self.bases[k]
+            lever = float(np.clip(np.linalg.norm(at - base) / max(float(np.linalg.norm(pos - base)), 1e-9), 0.3, 1.0))
+            goal = _within(pos + (aims[k] - at) / lever, base, max(self.reach[k], float(np.linalg.norm(pos - base))))
+            self.moves[k] = (idx, pos, [goal])
+        self._keep_holds()
+        moved = 0.0
+        for k in range(self.n_tips):
+            idx, pos, ways = self.moves[k]
+            clearance = float(w.model.data.radius[np.atleast_1d(idx)].max())
+            goal = w.clear_of_solids(np.array(ways), clearance)[0]
+            step = float(np.linalg.norm(goal - pos))
+            self.moves[k] = (idx, pos, [goal] if step > 1e-4 else [])
+            moved += step
+        self.total += moved
+        return moved > 1e-3
 
     def approach(self, x: np.ndarray):
         """Closest approach of C and T now: ``(distance, point on C, point on T)``."""

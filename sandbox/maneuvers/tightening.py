@@ -157,7 +157,6 @@ class Tightening(Maneuver):
                 self._pull(idx, d, q.force)
         self.capped: set[int] = set()  # pulls held at their own ``distance`` (force mode)
         self.pushed = self._start_push(x)
-        self.push_best, self.push_stalled = np.inf, 0  # closest the pushed part has come to its goal
         self.pulled = 0.0
         self.tight = False
         self.finished = False  # set when the Tightening is done (tight or pulled its whole distance)
@@ -232,18 +231,10 @@ class Tightening(Maneuver):
         self._hand(idx, _unit(self._push_goal(x) - x[idx].mean(axis=0), -_UP), push.force, push.speed)
 
     def _update_push(self, x: np.ndarray) -> None:
-        """Keep pushing until the pushed part stops closing on its goal (by ``stall`` in ``stall_frames``)."""
-        p = self.params
-        gap = float(np.linalg.norm(self._push_goal(x) - x[self.pushed].mean(axis=0)))
-        if gap < self.push_best - p.stall:
-            self.push_best, self.push_stalled = gap, 0
-        else:
-            self.push_stalled += 1
-        if self.push_stalled >= p.stall_frames:  # as close as the push brings it: the hand lets go
-            self.world.control.release(self.pushed)
-            self.pushed = np.zeros(0, np.int64)
-        else:
-            self._push_toward(x, self.pushed)
+        """Push on toward the goal, re-aimed every frame, until the Tightening ends: a finger on the knot while
+        the ends are drawn. A hand that let go once the part stopped closing left the knot to the pulls, which
+        dragged it along: on square_knot's box top, 4 to 8 cm in 8 of 24 standard-sweep runs."""
+        self._push_toward(x, self.pushed)
 
     def _knot_centre(self, x: np.ndarray) -> np.ndarray:
         rec = self.world.record.windings
