@@ -304,13 +304,13 @@ class Crossing(Maneuver):
     The strands sag and bend on their way, so tips that arrive where they
     were planned may leave the strands passing further apart than that
     (above or beside each other). The hands then close the miss: once the
-    strands have settled (``CROSS_SETTLE_FRAMES``), each moving tip goes on along
-    the line between the two closest points, toward the other strand, by
-    its share of the miss over how far out along its strand the closest
-    point lies (a tip moves a point halfway down its strand by half as
-    much), within the same reach as its waypoints. At most ``MAX_REPLANS``
-    times; the Crossing fails only when the strands still miss 4 s after
-    the last move.
+    strands have settled (``CROSS_SETTLE_FRAMES``), each moving tip goes on
+    so that its strand passes where the crossing was planned (``_close_miss``):
+    by its strand's error there over how far out along the strand that point
+    lies (a tip moves a point halfway down its strand by half as much),
+    within the same reach as its waypoints. At most ``MAX_REPLANS`` times;
+    the Crossing fails only when the strands still miss 4 s after the last
+    move.
     """
 
     name = "Crossing"
@@ -394,9 +394,7 @@ class Crossing(Maneuver):
         # particle a radius clear of every surface on the way (``update``)
         # and would push it back out at every frame. Each waypoint is taken
         # out to that clearance first.
-        for k, (idx, pos, ways) in enumerate(self.moves):
-            clearance = float(w.model.data.radius[np.atleast_1d(idx)].max())
-            self.moves[k] = (idx, pos, list(w.clear_of_solids(np.array(ways), clearance)))
+        self._clear_waypoints(range(len(self.moves)))
         if spread:
             # A bottom carried apart ends where its last waypoint now is (taken clear of solids, kept within
             # reach of other holds), which may be a centimetre or more from where its tip's waypoints were
@@ -412,6 +410,14 @@ class Crossing(Maneuver):
                          for m in self.moves) or 1.0
         self.travelled = 0.0
         w.record.crossings[(p.active, p.target)] = self.x.copy()
+
+    def _clear_waypoints(self, moves) -> None:
+        """Take the waypoints of ``moves`` (indices into ``self.moves``) out to their particles' radius clear of
+        every object and above the ground, where the hand keeps them on its way (``update``)."""
+        for k in moves:
+            idx, pos, ways = self.moves[k]
+            clearance = float(self.world.model.data.radius[np.atleast_1d(idx)].max())
+            self.moves[k] = (idx, pos, list(self.world.clear_of_solids(np.array(ways), clearance)))
 
     def _keep_holds(self) -> None:
         """Pull every waypoint back within its rope's reach from the particles other hands hold.
@@ -610,7 +616,6 @@ class Crossing(Maneuver):
         that distance in front of where T passes nearest X (T's tip held). Each tip goes on by its strand's
         error there over how far out along the strand that point lies (a point halfway down moves half as much
         as the tip), within the reach its waypoints had. False where no tip can move a millimetre."""
-        w = self.world
         apart = self.c.radius + self.t.radius + 0.5 * self.gap
         front = self.params.sign * self.zhat
         parts = (self.c_cross, self.t_cross)
@@ -628,13 +633,12 @@ class Crossing(Maneuver):
             goal = _within(pos + (aims[k] - at) / lever, base, max(self.reach[k], float(np.linalg.norm(pos - base))))
             self.moves[k] = (idx, pos, [goal])
         self._keep_holds()
+        self._clear_waypoints(range(self.n_tips))
         moved = 0.0
         for k in range(self.n_tips):
             idx, pos, ways = self.moves[k]
-            clearance = float(w.model.data.radius[np.atleast_1d(idx)].max())
-            goal = w.clear_of_solids(np.array(ways), clearance)[0]
-            step = float(np.linalg.norm(goal - pos))
-            self.moves[k] = (idx, pos, [goal] if step > 1e-4 else [])
+            step = float(np.linalg.norm(ways[0] - pos))
+            self.moves[k] = (idx, pos, ways if step > 1e-4 else [])
             moved += step
         self.total += moved
         return moved > 1e-3
