@@ -342,3 +342,30 @@ def test_a_scene_without_the_joint_step_reports_no_time_for_it():
         s.begin_frame()
         s.profile_substep(w.dt / 10, 0.1, 0, 10)
         assert ("cloth_joint" in s.timings) == expect, s.timings
+
+
+def test_the_joint_step_skips_frames_where_a_hand_holds_the_cloth(monkeypatch):
+    """A level's joint step (``CLOTH_JOINT`` iterations unless set) is left out of a frame where a hand holds
+    a particle of the cloth, which then steps exactly as in a scene without the step, and runs in one where
+    only the scene's pins hold it; each frame decides from the hands at its start."""
+    from sandbox.levels.schema import CLOTH_JOINT
+
+    w = world_from_text(SHEET.replace("sim: {cloth_joint: ITER}", "sim: {}"))
+    plain = world_from_text(SHEET.replace("ITER", "0"))
+    s = w.solver
+    assert s.joint.iterations == CLOTH_JOINT and plain.solver.joint is None
+    calls = []
+    monkeypatch.setattr(s.joint, "settle", lambda step: calls.append(1) or 0)
+    x = (w.positions() + np.random.default_rng(3).normal(0.0, 2e-3, w.positions().shape)).astype(np.float32)
+    for world in (w, plain):
+        world.state.x.from_numpy(x)
+        world.control.drive([NX + 3], x[[NX + 3]])
+        world.solver.begin_frame()
+        world.solver.substep(world.dt, 1.0, 0, 1)
+    assert s.cloth_held and calls == []
+    np.testing.assert_array_equal(w.positions(), plain.positions())
+    w.control.release([NX + 3])
+    s.begin_frame()
+    assert not s.cloth_held  # the pin at [0, 0] is not a hand
+    s.substep(w.dt, 1.0, 0, 1)
+    assert calls == [1]

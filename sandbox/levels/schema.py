@@ -347,6 +347,9 @@ class Scene(_Model):
 CLOTH_CHAIN_SWEEPS = 3
 """Chain sweeps per iteration in a scene with an inextensible cloth, unless ``sim.chain_sweeps`` says otherwise."""
 
+CLOTH_JOINT = 4
+"""Conjugate-gradient iterations of the joint cloth step, unless ``sim.cloth_joint`` says otherwise."""
+
 ADAPTIVE_SUBSTEPS = 4
 """Unless ``sim.max_substeps`` says otherwise, a frame may take up to this many times ``sim.substeps``."""
 
@@ -376,14 +379,17 @@ class Sim(_Model):
     step 0). ``cloth_joint`` is the number of
     conjugate-gradient iterations of a Newton step that solves all rows and
     columns of each inextensible cloth together, after the chain sweeps of
-    every iteration (0: none; see ``sandbox/solvers/cloth_joint.py``), on
-    every ``cloth_joint_every``-th substep of a frame and on its last one.
-    It is for a cloth that must keep its length where it lies over sharp
-    vertices (drape_box: 17 % stretch without it, under 2 % with 6), at
-    about twice the frame time; it is off by default because a cloth held
-    by hands as well as pressed by an object has no length-keeping state
-    to converge to (wrap_box_corner: 30 % to 11 % at 3 x the frame time;
-    wrap_bottle: 82 % to 108 %, with 2.4 x the substeps).
+    every iteration (``CLOTH_JOINT`` unless set; 0: none, see
+    ``sandbox/solvers/cloth_joint.py``), on every ``cloth_joint_every``-th
+    substep of a frame and on its last one. It runs only in frames where no
+    hand (a maneuver's hold; a scene's pins are not hands) holds a particle
+    of a cloth: a cloth left to fall and drape, or hanging from pins, keeps
+    its length where it lies over sharp vertices (drape_box: 17 % stretch
+    without it, under 2 % with it, at about twice the frame time), while a
+    cloth held by hands as well as pressed by an object has no
+    length-keeping state to converge to (wrap_box_corner: 30 % to 11 % at
+    3 x the frame time; wrap_bottle: 82 % to 108 %, with 2.4 x the
+    substeps). A user sets 0 to trade a free cloth's stretch for frame time.
     The substep count adapts to the motion: each frame takes as many as
     keep the fastest particle (its speed at the end of the last frame plus
     gravity over one frame) within a quarter of the finest rest length (a
@@ -414,7 +420,7 @@ class Sim(_Model):
     self_collision_every: between(int, 1, 16) = 1
     chain_sweeps: between(int, 1, 16) | None = None
     chain_tolerance: between(float, 0.0, 1.0) = 1e-3
-    cloth_joint: between(int, 0, 64) = 0
+    cloth_joint: between(int, 0, 64) = CLOTH_JOINT
     cloth_joint_every: between(int, 1, 200) = 1
     max_substeps: between(int, 1, 200) | None = None
     tier: Tier | None = None

@@ -157,7 +157,8 @@ class SolverConfig:
         fuse_iterations: most iterations fused into one substep kernel (None:
             ``FUSE_ITERATIONS``); more run as several launches (the same passes,
             in the same order).
-        cloth_joint: conjugate-gradient iterations of the joint cloth step (0: none).
+        cloth_joint: conjugate-gradient iterations of the joint cloth step (0: none; a level's default is
+            ``CLOTH_JOINT``); it runs only in frames where no hand holds a particle of a cloth.
         cloth_joint_every: the joint step on every k-th substep (and the last).
     """
 
@@ -258,6 +259,12 @@ class XPBDSolver:
         self.joint = JointClothProjection(model, state, self.w, cloth_groups, contacts, peeled=self.inext.peeled,
                                           iterations=int(cloth_joint), slots=int(iterations)) if cloth_groups else None
         self.has_joint = self.joint is not None
+        # The joint step runs only in frames where no hand holds a cloth particle (``begin_frame``); a scene's
+        # pins are not hands (a cloth hanging from them still has a length-keeping state).
+        cloth_particles = (np.concatenate([np.arange(c.start, c.start + c.nx * c.nz) for c in model.data.cloths])
+                           if self.has_joint else np.zeros(0, np.int64))
+        self._cloth_particles = np.setdiff1d(cloth_particles, model.data.pins)
+        self.cloth_held = False
         self.prestabilize = self.ropecol is not None and self.inext is not None
         # Step 0 (wherever ropes collide; the standard sweep of every rope
         # level: docs/benchmarks.md, "Rope contacts"): what overlap and rod error the last substep left is removed
@@ -612,13 +619,17 @@ class XPBDSolver:
 
     def begin_frame(self) -> None:
         """Latch kinematic targets for the coming frame."""
-        self.ctl.upload()
+        if self.ctl.upload() and self.has_joint:
+            self.cloth_held = bool(self.ctl.is_driven(self._cloth_particles).any())
         self._begin_frame_k()
 
     def _skips(self, k: int, substeps: int) -> tuple[bool, bool]:
-        """Whether substep k of a frame skips cloth self-collision, and the joint cloth step."""
+        """Whether substep k of a frame skips cloth self-collision, and the joint cloth step (also skipped in
+        a frame where a hand, not a pin, holds a cloth particle: a cloth held by hands and pressed by an object
+        has no length-keeping state for it to converge to)."""
         last = k == substeps - 1
-        return (not (last or k % self.self_collision_every == 0), not (last or k % self.cloth_joint_every == 0))
+        return (not (last or k % self.self_collision_every == 0),
+                self.cloth_held or not (last or k % self.cloth_joint_every == 0))
 
     def substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
         """One substep (k of ``substeps``); ``frac`` is how far through the frame it ends."""
