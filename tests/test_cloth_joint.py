@@ -98,6 +98,15 @@ def joint_step_reference(x, w, rest, touching, normal, iterations=None, lam0=Non
     return x + dx, lam
 
 
+def _stretched_frame(w, noise=0.004):
+    """Start a frame of ``w`` whose sheet the last frame left with every edge off its length (the joint
+    step runs only after such a frame)."""
+    x0 = w.model.data.x0
+    w.state.x.from_numpy((x0 + np.random.default_rng(5).normal(scale=noise, size=x0.shape)).astype(np.float32))
+    w.solver.measure()
+    w.solver.begin_frame()
+
+
 def _prepare(w, rng, noise=0.004, contacts=True):
     """A sheet with every edge off its length (noise m), the solver's masses and some contacts set."""
     solver = w.solver
@@ -240,6 +249,7 @@ def test_joint_step_runs_on_every_kth_substep_and_the_last():
 
     w = world_from_text(SHEET.replace("ITER", "2, cloth_joint_every: 3, substeps: 5"))
     s = w.solver
+    _stretched_frame(w)
     runs = [JOINT in s.variants[s._skips(k, 5)][0] for k in range(5)]
     assert runs == [True, False, False, True, True]
     full, lite = s.variants[False, False][0], s.variants[False, True][0]
@@ -322,7 +332,7 @@ def test_a_substep_settles_after_its_joint_steps_and_only_when_they_ran(monkeypa
     s = w.solver
     calls = []
     monkeypatch.setattr(s.joint, "settle", lambda step: calls.append(int(s.joint.call[None])) or 0)
-    s.begin_frame()
+    _stretched_frame(w)
     dt = w.dt / 5
     for k in range(5):
         s.substep(dt, (k + 1) / 5, k, 5)
@@ -339,15 +349,17 @@ def test_a_scene_without_the_joint_step_reports_no_time_for_it():
         w = world_from_text(SHEET.replace("ITER", str(iters)))
         s = w.solver
         s.timings = {}
-        s.begin_frame()
+        _stretched_frame(w)
         s.profile_substep(w.dt / 10, 0.1, 0, 10)
         assert ("cloth_joint" in s.timings) == expect, s.timings
 
 
-def test_the_joint_step_skips_frames_where_a_hand_holds_the_cloth(monkeypatch):
+def test_the_joint_step_runs_only_where_no_hand_holds_the_cloth_and_it_is_stretched(monkeypatch):
     """A level's joint step (``CLOTH_JOINT`` iterations unless set) is left out of a frame where a hand holds
-    a particle of the cloth, which then steps exactly as in a scene without the step, and runs in one where
-    only the scene's pins hold it; each frame decides from the hands at its start."""
+    a particle of the cloth, and of one after a frame that left every rod within ``chain_tolerance``
+    (the first frame of a cloth built at its rest lengths); such a frame steps exactly as in a scene
+    without the step. It runs where the last frame left the cloth stretched and only the scene's pins
+    hold it; each frame decides from the hands at its start."""
     from sandbox.levels.schema import CLOTH_JOINT
 
     w = world_from_text(SHEET.replace("sim: {cloth_joint: ITER}", "sim: {}"))
@@ -356,16 +368,19 @@ def test_the_joint_step_skips_frames_where_a_hand_holds_the_cloth(monkeypatch):
     assert s.joint.iterations == CLOTH_JOINT and plain.solver.joint is None
     calls = []
     monkeypatch.setattr(s.joint, "settle", lambda step: calls.append(1) or 0)
+    s.begin_frame()
+    assert s.joint_idle and not s.cloth_held  # at rest: nothing to keep
     x = (w.positions() + np.random.default_rng(3).normal(0.0, 2e-3, w.positions().shape)).astype(np.float32)
     for world in (w, plain):
         world.state.x.from_numpy(x)
+        world.solver.measure()
         world.control.drive([NX + 3], x[[NX + 3]])
         world.solver.begin_frame()
         world.solver.substep(world.dt, 1.0, 0, 1)
-    assert s.cloth_held and calls == []
+    assert s.cloth_held and s.cloth_stretch > s.chain_tolerance and calls == []
     np.testing.assert_array_equal(w.positions(), plain.positions())
     w.control.release([NX + 3])
     s.begin_frame()
-    assert not s.cloth_held  # the pin at [0, 0] is not a hand
+    assert not s.cloth_held and not s.joint_idle  # the pin at [0, 0] is not a hand
     s.substep(w.dt, 1.0, 0, 1)
     assert calls == [1]

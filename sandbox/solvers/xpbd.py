@@ -265,6 +265,10 @@ class XPBDSolver:
                            if self.has_joint else np.zeros(0, np.int64))
         self._cloth_particles = np.setdiff1d(cloth_particles, model.data.pins)
         self.cloth_held = False
+        # ... and where the last frame left a cloth's rod stretched by more than ``chain_tolerance`` (``measure``):
+        # a cloth built at its rest lengths, or falling free, needs no joint step.
+        self.cloth_stretch = 0.0
+        self.joint_idle = True
         self.prestabilize = self.ropecol is not None and self.inext is not None
         # Step 0 (wherever ropes collide; the standard sweep of every rope
         # level: docs/benchmarks.md, "Rope contacts"): what overlap and rod error the last substep left is removed
@@ -621,15 +625,17 @@ class XPBDSolver:
         """Latch kinematic targets for the coming frame."""
         if self.ctl.upload() and self.has_joint:
             self.cloth_held = bool(self.ctl.is_driven(self._cloth_particles).any())
+        self.joint_idle = self.cloth_held or self.cloth_stretch <= self.chain_tolerance
         self._begin_frame_k()
 
     def _skips(self, k: int, substeps: int) -> tuple[bool, bool]:
         """Whether substep k of a frame skips cloth self-collision, and the joint cloth step (also skipped in
         a frame where a hand, not a pin, holds a cloth particle: a cloth held by hands and pressed by an object
-        has no length-keeping state for it to converge to)."""
+        has no length-keeping state for it to converge to; and in one after a frame that left every cloth rod
+        within ``chain_tolerance`` of its length: the chains alone keep it)."""
         last = k == substeps - 1
         return (not (last or k % self.self_collision_every == 0),
-                self.cloth_held or not (last or k % self.cloth_joint_every == 0))
+                self.joint_idle or not (last or k % self.cloth_joint_every == 0))
 
     def substep(self, dt: float, frac: float, k: int = 0, substeps: int = 1) -> None:
         """One substep (k of ``substeps``); ``frac`` is how far through the frame it ends."""
@@ -733,4 +739,7 @@ class XPBDSolver:
     def measure(self) -> dict:
         """Strain per body, penetration per particle and a NaN flag (NumPy)."""
         bad = self._measure_k(self._ground()[0])
-        return {"nan": bool(bad), "strain": self.strain.to_numpy()[: self.model.n_bodies], "depth": self.depth.to_numpy()}
+        strain = self.strain.to_numpy()[: self.model.n_bodies]
+        if self.has_joint:  # the cloths' groups follow the ropes'
+            self.cloth_stretch = float(strain[len(self.model.data.ropes):].max())
+        return {"nan": bool(bad), "strain": strain, "depth": self.depth.to_numpy()}
