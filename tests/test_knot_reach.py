@@ -284,6 +284,26 @@ def test_straightened_run_keeps_a_rod_to_a_held_particle_next_to_it_at_its_lengt
         assert run.max() == end, (gap, run)
 
 
+def test_nothing_is_straightened_where_x_t_is_out_of_reach_of_a_held_particle():
+    """X_T two rods from T's particle 31, which a hand holds 2 % farther than that: holding X_T where it is
+    would stretch the rods between, so no run is held straight; within reach the run is laid as before."""
+    w = _world(BENT)
+    t = w.rope("T")
+    w.step()
+    m = w.fsm._maneuver
+    w.control.release(m.straight)
+    rod = t.rod_length
+    line = np.array([-0.5, 0.5, 0.0]) + np.arange(t.end - t.start)[:, None] * np.array([rod, 0.0, 0.0])
+    m.j0 = 29
+    for gap, laid_any in ((2.04, False), (2.0, True)):
+        w.control.drive([t.start + 31], (line[29] + gap * np.array([rod, 0.0, 0.0]))[None, :])
+        laid = m._straighten(line.copy())
+        w.control.release(laid)
+        assert (len(laid) > 0) == laid_any, gap
+        if laid_any:
+            assert (laid - t.start).max() == 30 and (laid - t.start).min() < 29
+
+
 def _winding_world(**extra):
     w = shipped_world("rope_wind.yaml", {"fsm.1.timeout": 300, **{f"fsm.1.with.{k}": v for k, v in extra.items()}})
     while not (w.fsm.state == "1:Winding" and w.fsm._maneuver.k >= 2):

@@ -180,8 +180,9 @@ class Winding(Maneuver):
         the rope's reach from the nearest particle held outside it (a hand
         pinching T, T's standing end, where its hand holds it): the rods
         between them would have to stretch by more than ``REACH_SLACK``; or,
-        next to a held particle, be compressed by as much. Returns their
-        global indices.
+        next to a held particle, be compressed by as much. Where X_T itself is
+        out of that reach (a tip still on its way to where a hand takes it),
+        nothing is held straight. Returns their global indices.
         """
         w = self.world
         half = int(round(0.5 * self.params.straighten / self.t.rod_length))
@@ -212,8 +213,9 @@ class Winding(Maneuver):
             lo += 1
         while hi > self.j0 and len(above) and not reachable(hi, int(above.min())):
             hi -= 1
-        if hi - lo < 2:
-            return np.zeros(0, np.int64)
+        if hi - lo < 2 or (len(below) and not reachable(lo, int(below.max()))) or (
+                len(above) and not reachable(hi, int(above.min()))):
+            return np.zeros(0, np.int64)  # X_T itself out of reach: holding it where it is would stretch T
         run = np.arange(lo, hi + 1)
         line = xs[self.j0] + ((run - self.j0) * rod)[:, None] * d
         idx = self.t.idx[run]
