@@ -265,9 +265,9 @@ class XPBDSolver:
                            if self.has_joint else np.zeros(0, np.int64))
         self._cloth_particles = np.setdiff1d(cloth_particles, model.data.pins)
         self.cloth_held = False
-        # ... and where the last frame left a cloth's rod stretched by more than ``chain_tolerance`` (``measure``):
-        # a cloth built at its rest lengths, or falling free, needs no joint step.
-        self.cloth_stretch = 0.0
+        # ... and from the second frame on: a cloth is built at its rest lengths, and the first frame comes
+        # before a level's FSM has taken hold of anything.
+        self.frames_begun = 0
         self.joint_idle = True
         self.prestabilize = self.ropecol is not None and self.inext is not None
         # Step 0 (wherever ropes collide; the standard sweep of every rope
@@ -625,14 +625,15 @@ class XPBDSolver:
         """Latch kinematic targets for the coming frame."""
         if self.ctl.upload() and self.has_joint:
             self.cloth_held = bool(self.ctl.is_driven(self._cloth_particles).any())
-        self.joint_idle = self.cloth_held or self.cloth_stretch <= self.chain_tolerance
+        self.joint_idle = self.cloth_held or self.frames_begun == 0
+        self.frames_begun += 1
         self._begin_frame_k()
 
     def _skips(self, k: int, substeps: int) -> tuple[bool, bool]:
         """Whether substep k of a frame skips cloth self-collision, and the joint cloth step (also skipped in
         a frame where a hand, not a pin, holds a cloth particle: a cloth held by hands and pressed by an object
-        has no length-keeping state for it to converge to; and in one after a frame that left every cloth rod
-        within ``chain_tolerance`` of its length: the chains alone keep it)."""
+        has no length-keeping state for it to converge to; and in the first frame, whose cloth is at its rest
+        lengths and which comes before a level's FSM first takes hold of it)."""
         last = k == substeps - 1
         return (not (last or k % self.self_collision_every == 0),
                 self.joint_idle or not (last or k % self.cloth_joint_every == 0))
@@ -739,7 +740,4 @@ class XPBDSolver:
     def measure(self) -> dict:
         """Strain per body, penetration per particle and a NaN flag (NumPy)."""
         bad = self._measure_k(self._ground()[0])
-        strain = self.strain.to_numpy()[: self.model.n_bodies]
-        if self.has_joint:  # the cloths' groups follow the ropes'
-            self.cloth_stretch = float(strain[len(self.model.data.ropes):].max())
-        return {"nan": bool(bad), "strain": strain, "depth": self.depth.to_numpy()}
+        return {"nan": bool(bad), "strain": self.strain.to_numpy()[: self.model.n_bodies], "depth": self.depth.to_numpy()}
