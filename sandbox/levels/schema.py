@@ -381,9 +381,10 @@ class Sim(_Model):
     columns of each inextensible cloth together, after the chain sweeps of
     every iteration (``CLOTH_JOINT`` unless set; 0: none, see
     ``sandbox/solvers/cloth_joint.py``), on every ``cloth_joint_every``-th
-    substep of a frame and on its last one. It runs only in frames where no
-    hand (a maneuver's hold; a scene's pins are not hands) holds a particle
-    of a cloth: a cloth left to fall and drape, or hanging from pins, keeps
+    substep of a frame and on its last one. It runs from the second frame
+    on (the first starts from the rest lengths, before a level's FSM has
+    taken hold of anything), in frames where no hand (a maneuver's hold; a
+    scene's pins are not hands) holds a particle of a cloth: a cloth left to fall and drape, or hanging from pins, keeps
     its length where it lies over sharp vertices (drape_box: 17 % stretch
     without it, under 2 % with it, at about twice the frame time), while a
     cloth held by hands as well as pressed by an object has no

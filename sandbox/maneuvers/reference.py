@@ -39,7 +39,7 @@ def _docstring_attributes(cls: type) -> dict[str, str]:
     out: dict[str, str] = {}
     names: list[str] = []
     for line in lines[lines.index("Attributes:") + 1:]:
-        entry = re.match(r"^    ([\w, ]+): (.*)$", line)
+        entry = re.match(r"^    (\w[\w, ]*): (.*)$", line)  # a name right at the indent: not a continuation
         if entry:
             names = [n.strip() for n in entry.group(1).split(",")]
             for n in names:

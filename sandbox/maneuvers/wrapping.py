@@ -166,9 +166,9 @@ class WrapParams(Params):
         angle: start direction in degrees, about the outward normal at the
             start, from the direction straight up the object (counter-clockwise
             seen from outside); without ``to`` the line is traced this way for
-            the control line's length. It is how a corner is wound around an
-            object rather than laid to a place on it: a spiral around a
-            bottle, where no site names where the corner ends.
+            the control line's length. A user sets it to wind a corner
+            around the thing wrapped rather than lay it to a place on it: a
+            spiral around a bottle, where no site names where the corner ends.
         turns: expected turns about the vertical through the object (picks the
             route of a traced line that must end at ``to``).
         hull: target lines on the object's convex hull for every line, for a
