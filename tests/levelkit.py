@@ -74,3 +74,11 @@ def random_contacts(rng, n: int, share: float = 0.25):
     normal = rng.normal(size=(n, 3))
     normal /= np.linalg.norm(normal, axis=1)[:, None]
     return touching, normal
+
+
+def step_until_finished(w, frames: int) -> None:
+    """Step world ``w`` until its FSM finishes, at most ``frames`` frames."""
+    for _ in range(frames):
+        w.step()
+        if w.fsm.finished:
+            return

@@ -15,7 +15,7 @@ from sandbox.model.model import GRIP_GIVE
 from sandbox.record import WindingRecord
 
 import sandbox.maneuvers  # noqa: F401
-from tests.levelkit import world_from_text as _world
+from tests.levelkit import world_from_text as _world, step_until_finished
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -194,10 +194,7 @@ fsm:
 @pytest.mark.parametrize("sign", [1, -1])
 def test_crossing_two_ropes_makes_a_crossing_of_the_asked_sign(sign):
     w = _world(TWO_ROPES.replace("SIGN", str(sign)))
-    for _ in range(300):
-        w.step()
-        if w.fsm.finished:
-            break
+    step_until_finished(w, 300)
     assert w.fsm.succeeded, w.fsm.events
     a, b = w.rope_positions("A"), w.rope_positions("B")
     x = w.record.crossings[("A", "B")]
@@ -219,10 +216,7 @@ def test_crossing_moves_the_tip_again_when_the_strands_miss():
     asked sign (it used to fail after 4 s)."""
     text = TWO_ROPES.replace("SIGN", "1").replace("slack: 0.95}", "slack: 0.95, target_tip: null}")
     w = _world(text.replace("[[0.15, 0.3, 0], [0.15, 0.8, 0]]", "[[0.15, 0.3, 0], [0.15, 0.8, -0.3]]"))
-    for _ in range(300):
-        w.step()
-        if w.fsm.finished:
-            break
+    step_until_finished(w, 300)
     assert w.fsm.succeeded, w.fsm.events
     done = [e for e in w.fsm.events if e["type"] == "done" and "Crossing" in e["state"]]
     assert "moved again" in done[0]["message"], done
@@ -299,10 +293,7 @@ fsm:
 def test_crossing_is_found_between_the_bottoms_and_the_tips():
     """Standing ends held side by side below the bottoms (two corners a cloth joins) are not the crossing."""
     w = _world(JOINED)
-    for _ in range(300):
-        w.step()
-        if w.fsm.finished:
-            break
+    step_until_finished(w, 300)
     assert w.fsm.succeeded, w.fsm.events
     x = w.record.crossings[("B", "A")]
     assert x[1] > 0.3 + 0.06, x  # up where the strands cross, not at the held ends (0.02 m apart)
@@ -398,10 +389,7 @@ def test_tightening_stops_when_the_rope_is_taut():
     """A straight rope pulled at both ends is taut at once: the ends give back and hold."""
     w = _world(PULL)
     x0 = w.rope_positions("R").copy()
-    for _ in range(120):
-        w.step()
-        if w.fsm.finished:
-            break
+    step_until_finished(w, 120)
     assert w.fsm.succeeded
     for _ in range(30):  # the ends stay held where the maneuver left them
         w.step()
@@ -497,10 +485,7 @@ def test_tightening_by_force_toward_a_point_keeps_aiming_at_it():
     goal = np.array([0.5, 0.9, 0.0])
     w = _world(SLACK_PULL.replace("direction: [1, 0, 0]", "toward: [0.5, 0.9, 0]"))
     start = _heads_toward(w, goal)
-    for _ in range(700):
-        w.step()
-        if w.fsm.finished:
-            break
+    step_until_finished(w, 700)
     assert w.fsm.succeeded, w.fsm.events
     x = w.rope_positions("R")
     length = 0.02 * (len(x) - 1)
@@ -536,10 +521,7 @@ def test_tightening_pull_with_its_own_force_hangs_at_that_force():
     ``settle_speed``, which leaves part of a swing).
     """
     w = _world(SLACK_PULL.replace("direction: [1, 0, 0]", "direction: [1, 0, 0], force: 0.5"))
-    for _ in range(900):
-        w.step()
-        if w.fsm.finished:
-            break
+    step_until_finished(w, 900)
     assert w.fsm.succeeded, w.fsm.events
     span = w.rope_positions("R")[-1] - w.rope_positions("R")[0]
     phi = np.degrees(np.arctan2(-span[1], span[0]))
@@ -633,10 +615,7 @@ def test_crossing_above_a_contact_fails_when_the_strands_do_not_touch():
 def test_tightening_keeps_the_sites_it_is_told_to_keep():
     w = _world(PULL.replace("fsm:\n", "fsm:\n  - {run: Anchoring, with: {body: R, sites: [10, 20]}}\n")
                .replace("max_strain: 0.003}", "max_strain: 0.003, keep: [{body: R, sites: [10]}]}"))
-    for _ in range(120):
-        w.step()
-        if w.fsm.finished:
-            break
+    step_until_finished(w, 120)
     assert w.fsm.succeeded, w.fsm.events
     held = w.control.is_driven([10, 20])
     assert held[0] and not held[1]
