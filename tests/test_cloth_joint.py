@@ -108,8 +108,10 @@ def _stretched_frame(w, noise=0.004):
     w.solver.begin_frame()
 
 
-def _prepare(w, rng, noise=0.004, contacts=True):
-    """A sheet with every edge off its length (noise m), the solver's masses and some contacts set."""
+def _prepare(w, rng, noise=0.004, contacts=True, lift=None):
+    """A sheet with every edge off its length (noise m), the solver's masses and some contacts set, each
+    touching particle on its surface (its contact plane through it) or, with ``lift`` (n,) m, that far off
+    it along its normal."""
     solver = w.solver
     solver.forget()
     x0 = w.model.data.x0.astype(np.float64)
@@ -120,10 +122,18 @@ def _prepare(w, rng, noise=0.004, contacts=True):
     solver.contacts.hit.from_numpy(touching.astype(np.float32))
     solver.contacts.normal.from_numpy(normal.astype(np.float32))
     x32 = x.astype(np.float32).astype(np.float64)
+    _on_surface(w, x32, normal)
+    if lift is not None:
+        solver.contacts.plane.from_numpy((solver.contacts.plane.to_numpy() - lift).astype(np.float32))
     rest = np.full(sum(len(c) - 1 for c in _chains()), 0.0)
     rest[: NZ * (NX - 1)] = 0.26 / (NX - 1)
     rest[NZ * (NX - 1):] = 0.2 / (NZ - 1)
     return x32, inv_mass, rest, touching, normal
+
+
+def _on_surface(w, x, normal):
+    """Contact planes through the particles at ``x`` (as if the contacts had just pushed them there)."""
+    w.solver.contacts.plane.from_numpy(np.einsum("ij,ij->i", x, normal).astype(np.float32))
 
 
 def _strain(x, rest):
@@ -145,6 +155,27 @@ def test_joint_step_matches_the_scipy_reference():
     # Not yet the exact Newton step, which the reference reaches with a direct solve.
     exact = joint_step_reference(x, inv_mass, rest, touching, normal)[0]
     assert np.abs(exact - expect).max() > 1e-5
+
+
+def test_a_particle_that_has_left_its_surface_is_free_in_the_step():
+    """A particle that touched a surface in the substep but has since moved off it along the normal by more
+    than LIFT of its radius is not held to the surface's tangent plane: the step is the reference's with
+    those particles free; one lifted by less stays held."""
+    from sandbox.solvers.cloth_joint import LIFT
+
+    w = _sheet(3)
+    radius = float(w.model.data.radius[0])
+    rng = np.random.default_rng(7)
+    lift = np.where(rng.random(NX * NZ) < 0.5, 2.0 * LIFT * radius, 0.5 * LIFT * radius)
+    x, inv_mass, rest, touching, normal = _prepare(w, np.random.default_rng(7), lift=lift)
+    held = touching & (lift < LIFT * radius)
+    assert 0 < held.sum() < touching.sum()
+    expect = joint_step_reference(x, inv_mass, rest, held, normal, iterations=3)[0]
+    w.solver.joint.joint()
+    got = w.positions().astype(np.float64)
+    np.testing.assert_allclose(got, expect, atol=3e-6)
+    all_held = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=3)[0]
+    assert np.abs(all_held - expect).max() > 1e-4  # the lifted particles make a difference
 
 
 def test_the_solver_launches_the_step_as_begin_one_cg_kernel_per_iteration_and_end():
@@ -230,6 +261,7 @@ def test_a_step_starts_from_the_last_steps_multipliers():
     moved = (first + rng.normal(scale=0.002, size=first.shape)).astype(np.float32)
     w.state.x.from_numpy(moved)
     moved = moved.astype(np.float64)
+    _on_surface(w, moved, normal)
     warm = joint_step_reference(moved, inv_mass, rest, touching, normal, iterations=3, lam0=WARM_START * lam)[0]
     whole = joint_step_reference(moved, inv_mass, rest, touching, normal, iterations=3, lam0=lam)[0]
     cold = joint_step_reference(moved, inv_mass, rest, touching, normal, iterations=3)[0]
@@ -274,6 +306,7 @@ def test_each_call_of_a_substep_starts_from_the_same_call_of_the_last_substep():
         if k:
             x = (w.positions() + rng.normal(scale=0.001, size=x.shape)).astype(np.float32).astype(np.float64)
             w.state.x.from_numpy(x.astype(np.float32))
+            _on_surface(w, x, normal)
         if k == 0:
             j.begin_substep()
         expect, lam = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=3)
@@ -285,6 +318,7 @@ def test_each_call_of_a_substep_starts_from_the_same_call_of_the_last_substep():
         x = (w.positions() + rng.normal(scale=0.002 if k == 0 else 0.001, size=x.shape)).astype(np.float32)
         w.state.x.from_numpy(x)
         x = x.astype(np.float64)
+        _on_surface(w, x, normal)
         expect = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=3, lam0=WARM_START * lams[k])[0]
         other = joint_step_reference(x, inv_mass, rest, touching, normal, iterations=3,
                                      lam0=WARM_START * lams[1 - k])[0]

@@ -94,6 +94,9 @@ class Contacts:
         normal: (n,) vec3 f32, the direction it was pushed (the chains leave motion along it to the contacts).
         dv: (n,) f32, m/s, friction budget of its ground and object contacts (``CONTACT_FLAG`` at least when touched).
         vel: (n,) vec3 f32, m/s, velocity of the surface it touched.
+        plane: (n,) f32, m, ``normal . x`` where its last ground or object push left it: how far it has
+            since moved off that surface is ``normal . x - plane`` (the joint cloth step frees a particle
+            that has left it).
         taut, taut_n, room: (n,) f32, vec3, f32, only with ``taut``: how much of a particle's inverse mass a rope
             contact takes away along ``taut_n``, and how far along it a pass may move it (a held stretch of rope
             drawn taut; ``rope_chain.ChainProjection.taut_f``).
@@ -104,6 +107,7 @@ class Contacts:
         self.normal = ti.Vector.field(3, ti.f32, shape=n)
         self.dv = ti.field(ti.f32, shape=n)
         self.vel = ti.Vector.field(3, ti.f32, shape=n)
+        self.plane = ti.field(ti.f32, shape=n)
         self.has_taut = bool(taut)
         self.taut = ti.field(ti.f32, shape=n) if taut else None
         self.taut_n = ti.Vector.field(3, ti.f32, shape=n) if taut else None

@@ -48,6 +48,10 @@ WARM_START = 0.8
 # substep (drape_box as it lies still: 24 of about 1,900 substeps, at 4 CG iterations).
 SETTLE_STRETCH = 0.01
 SETTLE_STEPS = 3
+# A particle that touched a surface in this substep but has since moved off it by more than this share
+# of its radius (along the contact normal, from where the last push left it) is free in the step, not
+# held to the surface's tangent plane (``begin_f``).
+LIFT = 0.1
 # Chains whose preconditioner solves one loop iteration steps side by side (``_precondition``).
 LANES = 4
 
@@ -89,8 +93,11 @@ class JointClothProjection(ChainProjection):
     def __init__(self, model, state, w, groups, contacts=None, peeled=None, iterations: int = 8,
                  slots: int = 1) -> None:
         super().__init__(model, state, w, groups, contacts)
-        if peeled is not None:
-            self.peeled = peeled
+        # The chain step's peel flags, read; the step's own flags (``self.peeled``, the parent's field) add
+        # the particles that have left their surface since it pushed them.
+        self.chain_peeled = peeled
+        self.has_chain_peeled = peeled is not None
+        self.plane = contacts.plane if contacts is not None else None
         self.iterations = int(iterations)
         L = self.n_links
         self.lam = ti.field(ti.f32, shape=L)
@@ -308,6 +315,7 @@ class JointClothProjection(ChainProjection):
         the next substep's warm start.
         """
         cold = self.cold[None]
+        self._free_lifted()
         self._linearise(0, self.n_links)
         for j in range(self.n_links):
             # Right-hand side -C, kept in rr while res holds the factors.
@@ -333,6 +341,24 @@ class JointClothProjection(ChainProjection):
         self._precondition(self.rr, self.z, 0)
         for j in range(self.n_links):
             self.p[j] = self.z[j]
+
+    @ti.func
+    def _free_lifted(self):
+        """The particles the step holds to their surface's tangent plane: those that touched it in this
+        substep (and that the chain step has not peeled), less those that have since moved off it by more
+        than ``LIFT`` of their radius. Held to the plane, such a particle could move only along it, and
+        a box's vertex would lift it a millimetre or two every other substep (drape_box: the particle
+        over a top vertex at 1.3 m/s, every other frame, its position still)."""
+        if ti.static(self.has_contacts):
+            x = ti.static(self.st.x)
+            for q in range(self.n_movers):
+                i = self.mover[q]
+                free = 0
+                if ti.static(self.has_chain_peeled):
+                    free = self.chain_peeled[i]
+                if self.contact[i] > 0.0 and x[i].dot(self.normal[i]) - self.plane[i] > ti.static(LIFT) * self.model.radius[i]:
+                    free = 1
+                self.peeled[i] = free
 
     @ti.func
     def cg_f(self):

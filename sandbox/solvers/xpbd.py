@@ -443,6 +443,7 @@ class XPBDSolver:
                         self.contacts.hit[i] = 1.0
                         self.contacts.dv[i] = ti.max(self.contacts.dv[i], 0.5 * (mu_p + gmu) * pen / dt, CONTACT_FLAG)
                         self.contacts.vel[i] = ti.math.vec3(0.0)
+                        self.contacts.plane[i] = x[1]
                 if ti.static(self.has_objects):
                     d, n, k = self.objects.query_within(x, r)
                     pen = r - d
@@ -453,6 +454,7 @@ class XPBDSolver:
                         self.contacts.hit[i] = 1.0
                         self.contacts.dv[i] = ti.max(self.contacts.dv[i], mu * pen / dt, CONTACT_FLAG)
                         self.contacts.vel[i] = self.objects.velocity_at(k, x)
+                        self.contacts.plane[i] = n.dot(x)
                 st.x[i] = x
 
     @ti.func
