@@ -211,7 +211,14 @@ class ClothSpec(_Model):
         mass: total mass (kg).
         thickness: collision thickness (m); None means 1.5 x particle spacing.
         stretch_compliance, shear_compliance, bend_compliance: XPBD
-            compliances (inverse stiffness).
+            compliances (inverse stiffness). Rows and columns at stretch
+            compliance 0 are inextensible (the chain steps); shear is soft
+            by default (1e-3 m/N): the fast projection the method builds on
+            constrains warp and weft only. A cloth laid over a vertex must
+            shear there, and a shear as stiff as its rows and columns (1e-6)
+            locks against them (drape_box: the particle over a box vertex
+            thrown back and forth at 0.45-1.3 m/s while the cloth lies
+            still). Set it lower for a cloth that resists shear (paper, felt).
         damping: fraction of velocity lost per second (each substep scales it
             by 1 - damping * dt), in [0, 1].
         pins: particles held in place.
@@ -230,7 +237,7 @@ class ClothSpec(_Model):
     mass: Positive = 0.5
     thickness: Length | None = None
     stretch_compliance: NonNegative = 0.0
-    shear_compliance: NonNegative = 1e-6
+    shear_compliance: NonNegative = 1e-3
     bend_compliance: NonNegative = 1e-3
     damping: Unit = 0.01
     friction: Friction = 0.5
