@@ -178,6 +178,21 @@ def test_a_particle_that_has_left_its_surface_is_free_in_the_step():
     assert np.abs(all_held - expect).max() > 1e-4  # the lifted particles make a difference
 
 
+def test_a_particle_the_chain_step_peeled_is_free_in_the_step_and_its_flags_are_only_read():
+    """Particles on their surface but peeled by the chain step are free in the step (the reference with
+    them free), and the step leaves the chain step's flags as they were."""
+    w = _sheet(3)
+    x, inv_mass, rest, touching, normal = _prepare(w, np.random.default_rng(9))
+    peel = touching & (np.random.default_rng(10).random(NX * NZ) < 0.5)
+    assert 0 < peel.sum() < touching.sum()
+    w.solver.inext.peeled.from_numpy(peel.astype(np.int32))
+    expect = joint_step_reference(x, inv_mass, rest, touching & ~peel, normal, iterations=3)[0]
+    w.solver.joint.joint()
+    np.testing.assert_allclose(w.positions().astype(np.float64), expect, atol=3e-6)
+    np.testing.assert_array_equal(w.solver.inext.peeled.to_numpy(), peel.astype(np.int32))
+    w.solver.inext.peeled.fill(0)
+
+
 def test_the_solver_launches_the_step_as_begin_one_cg_kernel_per_iteration_and_end():
     """The solver runs the joint pass as its begin, one kernel launched once per CG iteration, and its
     end: the same kernel object each time (compiled once, not unrolled), and the same step as

@@ -215,10 +215,11 @@ class ClothSpec(_Model):
             compliance 0 are inextensible (the chain steps); shear is soft
             by default (1e-3 m/N): the fast projection the method builds on
             constrains warp and weft only. A cloth laid over a vertex must
-            shear there, and a shear as stiff as its rows and columns (1e-6)
-            locks against them (drape_box: the particle over a box vertex
-            thrown back and forth at 0.45-1.3 m/s while the cloth lies
-            still). Set it lower for a cloth that resists shear (paper, felt).
+            shear there, and a stiff shear (1e-6: all but rigid for
+            drape_box's 19 mg particles) locks against the rows and columns
+            (the particle over a box vertex thrown back and forth at
+            0.45-1.3 m/s while the cloth lies still). Set it lower for a
+            cloth that resists shear (paper, felt).
         damping: fraction of velocity lost per second (each substep scales it
             by 1 - damping * dt), in [0, 1].
         pins: particles held in place.

@@ -8,7 +8,8 @@ Gauss-Seidel on a strongly coupled system and stalls: in ``drape_box`` 26
 edges stay 2-19 % stretched at the vertices, however many sweeps. Solved
 together (every structural edge of the cloth in one linearised system
 ``(J W J^T) dlam = -C``, contact particles restricted to their tangent
-plane as in the chain step) the same state converges: taken from the end
+plane as in the chain step, unless they have since moved off it by more
+than ``LIFT`` of their radius) the same state converges: taken from the end
 of a ``drape_box`` run, three such Newton steps bring every edge within
 0.8 % and six within 0.1 %, moving no particle by more than 2.3 mm.
 
@@ -41,7 +42,8 @@ THROW = 0.5
 # The share of the last step's multipliers a step starts from. The whole of
 # them over-corrects where the shear pass pushes a particle off a box vertex
 # every substep (a two-substep cycle at 0.5-0.75 m/s there); 0.8 damps it
-# (drape_box: every criterion at 4 of 5 placements instead of 2).
+# (drape_box: every criterion at 4 of 5 placements instead of 2; measured at
+# a shear compliance of 1e-6, before shear became soft).
 WARM_START = 0.8
 # After a substep's steps, more steps (from zero multipliers, at most SETTLE_STEPS) while an edge is
 # stretched by more than SETTLE_STRETCH: a step that leaves more than that met a change within the
@@ -50,7 +52,7 @@ SETTLE_STRETCH = 0.01
 SETTLE_STEPS = 3
 # A particle that touched a surface in this substep but has since moved off it by more than this share
 # of its radius (along the contact normal, from where the last push left it) is free in the step, not
-# held to the surface's tangent plane (``begin_f``).
+# held to the surface's tangent plane (``_free_lifted``).
 LIFT = 0.1
 # Chains whose preconditioner solves one loop iteration steps side by side (``_precondition``).
 LANES = 4
@@ -68,8 +70,9 @@ class JointClothProjection(ChainProjection):
     Args:
         model, state, w, contacts: as for ``ChainProjection``.
         groups: ``cloth_chain_groups(model.data)``.
-        peeled: the chain step's peel flags (n,) i32, shared, so that a
-            particle the chain step lets leave its surface is free here too.
+        peeled: the chain step's peel flags (n,) i32, read, so that a
+            particle the chain step lets leave its surface is free here too
+            (the step adds its own, ``_free_lifted``).
         iterations: CG iterations per Newton step.
         slots: how many times a substep runs the step (the solver's iterations).
 
@@ -86,6 +89,8 @@ class JointClothProjection(ChainProjection):
         adj, sgn: (P, 4) i32 / f32, each particle's links (-1: none) and the
             sign of its gradient (+1 at b, -1 at a).
         g: (P,) vec3 f32, m, W J^T v per particle.
+        peeled: (P,) i32, 1 where a particle that touched a surface is free in
+            this step (peeled by the chain step, or lifted off its surface).
         blk, chain_sum, dots: (L / 64,) and (chains,) f32 partial sums of
             inner products; (4,) f32 finished ones.
     """
@@ -344,11 +349,10 @@ class JointClothProjection(ChainProjection):
 
     @ti.func
     def _free_lifted(self):
-        """The particles the step holds to their surface's tangent plane: those that touched it in this
-        substep (and that the chain step has not peeled), less those that have since moved off it by more
-        than ``LIFT`` of their radius. Held to the plane, such a particle could move only along it, and
-        a box's vertex would lift it a millimetre or two every other substep (drape_box: the particle
-        over a top vertex at 1.3 m/s, every other frame, its position still)."""
+        """Set the step's free flags (``peeled``): the chain step's, and every particle that touched a
+        surface in this substep but has since moved off it by more than ``LIFT`` of its radius. Held to
+        the plane, such a particle could move only along it, and over a box's vertex the step lifted it
+        1.6 mm every other substep (drape_box: 1.3 m/s at the end, its position still)."""
         if ti.static(self.has_contacts):
             x = ti.static(self.st.x)
             for q in range(self.n_movers):
@@ -356,7 +360,8 @@ class JointClothProjection(ChainProjection):
                 free = 0
                 if ti.static(self.has_chain_peeled):
                     free = self.chain_peeled[i]
-                if self.contact[i] > 0.0 and x[i].dot(self.normal[i]) - self.plane[i] > ti.static(LIFT) * self.model.radius[i]:
+                off = x[i].dot(self.normal[i]) - self.plane[i]
+                if self.contact[i] > 0.0 and off > ti.static(LIFT) * self.model.radius[i]:
                     free = 1
                 self.peeled[i] = free
 

@@ -206,7 +206,7 @@ class XPBDSolver:
         strain: (bodies,) f32, max |l - r| / r of each rope's rods; max
             (l - r) / r (stretch) of each cloth's structural edges.
         contacts: this substep's contacts (``collision.contacts.Contacts``:
-            flag, normal, friction budget, surface velocity, taut rope), made
+            flag, normal, contact plane, friction budget, surface velocity, taut rope), made
             by the contact passes and read by the chains, the joint step and
             the velocity pass; None where nothing can touch a particle.
     """
