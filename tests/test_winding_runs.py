@@ -294,6 +294,15 @@ def test_winding_clearance_sets_the_tube_its_targets_lie_on(clearance):
     np.testing.assert_allclose(np.hypot(g[:, 1] - 0.5, g[:, 2]), m.R, rtol=1e-2)  # T sags by under 0.1 mm
 
 
+def _rope_wind_winding_done() -> dict:
+    """Run rope_wind until its Winding has ended; that Winding's done event (the run must reach the Wait)."""
+    w = _shipped_world("rope_wind.yaml")
+    while not w.fsm.finished and w.fsm.state != "2:Wait":
+        w.step()
+    assert w.fsm.state == "2:Wait", w.fsm.events
+    return next(e for e in w.fsm.events if e["type"] == "done" and e["state"] == "1:Winding")
+
+
 def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(monkeypatch):
     """When the hands that hold C keep a particle's command short of its target (the rope's reach; here
     the fourth particle's command is held 6 mm short), the particle is laid where it stops and the winding
@@ -311,14 +320,32 @@ def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(
         return pos
 
     monkeypatch.setattr(winding.Winding, "_keep_holds", short)
-    w = _shipped_world("rope_wind.yaml")
-    while not w.fsm.finished and w.fsm.state != "2:Wait":
-        w.step()
-    assert w.fsm.state == "2:Wait", w.fsm.events
-    done = next(e for e in w.fsm.events if e["type"] == "done" and e["state"] == "1:Winding")
+    done = _rope_wind_winding_done()
     assert done["message"].startswith("1 particle(s) laid short"), done
     missed = float(done["message"].split("at most ")[1].split(" mm")[0])
     assert 4.0 < missed < 8.0, done  # about the 6 mm the command was held back, within the rope's sag
+
+
+def test_a_target_inside_t_s_tube_is_laid_short_and_the_winding_goes_on(monkeypatch):
+    """Where T has moved over a particle's target (here the fourth target is put halfway to T's axis, inside
+    the tube the hand keeps the particle out of), the tube holds the command back: the particle is laid where
+    it stops and the winding goes on, as for a target the rope cannot reach, instead of failing after its
+    timeout."""
+    from sandbox.maneuvers import winding
+
+    traced = winding.Winding._targets
+
+    def inside(self, *args, **kwargs):
+        g = traced(self, *args, **kwargs)
+        if len(g) > 3:
+            axis = self.tube.frame(self.tube.project(g[3])[0])[0][0]
+            g = g.copy()
+            g[3] = axis + 0.5 * (g[3] - axis)
+        return g
+
+    monkeypatch.setattr(winding.Winding, "_targets", inside)
+    done = _rope_wind_winding_done()
+    assert done["message"].startswith("1 particle(s) laid short"), done
 
 
 def test_turns_that_slip_off_t_are_laid_again_and_hands_go_round_t():

@@ -321,6 +321,7 @@ class Winding(Maneuver):
         dist = float(np.linalg.norm(d))
         before = self.pos
         self.pos = target.copy() if dist <= step else self.pos + d * (step / dist)
+        wanted = self.pos
         # Intermediate targets stay outside the bounding tube: a driven particle
         # is kinematic, and a straight path through T would drag T along, or
         # (projected back onto the tube from near its axis) jump through it.
@@ -328,8 +329,9 @@ class Winding(Maneuver):
         axis = self.tube.frame(s_ax)[0][0]
         if np.linalg.norm(self.pos - axis) < self.R:
             self.pos = self._around(before, target, step)
-        wanted = self.pos
         self.pos = self._keep_holds(idx, self.pos)
+        # Held back: by the hands that hold C, or by the tube, where T has moved over the target since it
+        # was traced (the re-trace follows T only while the turns are laid).
         held_back = float(np.linalg.norm(self.pos - wanted)) > 1e-9
         w.control.drive([idx], self.pos[None, :])
         x = w.positions()[idx]
@@ -339,8 +341,8 @@ class Winding(Maneuver):
             self.best_miss, self.stuck = miss, 0
         else:
             self.stuck += 1
-        # Out of reach: the hands that hold C keep the command short of the
-        # target, and the particle has stopped closing on it. The plan gives
+        # Out of reach: the hands that hold C, or T's tube, keep the command
+        # short of the target, and the particle has stopped closing on it. The plan gives
         # way: the particle is laid where the rope lets it, and the next one
         # goes on from there, instead of waiting out the timeout.
         out_of_reach = held_back and self.stuck >= STUCK_FRAMES
