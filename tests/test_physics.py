@@ -680,7 +680,8 @@ def test_a_frictionless_rope_over_a_rope_or_a_solid_slides_at_the_closed_form_sp
     """A rope hung half a turn over a held rope or a fixed sphere, its ends pulled with F1 and 1.5 F1 against
     drags b (``tools/capstan.py``), frictionless: it slides at (F2 - F1) / (2 b), within 10 % (the contacts
     and the chain step take no speed out of a rope drawn round a curve). With friction the capstan equation's
-    threshold is not met yet, and the speeds turn on rounding: docs/benchmarks.md, "Rope friction"."""
+    threshold is not met yet, and the speeds turn on rounding: docs/benchmarks.md, "Rope friction" and
+    "On a solid"."""
     import sys
 
     sys.path.insert(0, str(ROOT / "tools"))

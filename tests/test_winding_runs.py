@@ -346,6 +346,8 @@ def test_a_target_inside_t_s_tube_is_laid_short_and_the_winding_goes_on(monkeypa
     monkeypatch.setattr(winding.Winding, "_targets", inside)
     done = _rope_wind_winding_done()
     assert done["message"].startswith("1 particle(s) laid short"), done
+    missed = float(done["message"].split("at most ")[1].split(" mm")[0])
+    assert 4.0 < missed < 12.0, done  # the target lies R / 2 = 8.25 mm inside the tube the particle keeps out of
 
 
 def test_turns_that_slip_off_t_are_laid_again_and_hands_go_round_t():

@@ -79,7 +79,7 @@ def closed_form(mu: float, ratio: float) -> float:
 
 def slide_speed(mu: float, ratio: float, seconds: float, arch: str, over: str = "rope") -> float:
     """A's mean speed towards the heavier pull (m/s) from ``SETTLE`` until ``seconds`` have passed or the heavier
-    end has come ``REACH`` down (A still hangs over B on both sides)."""
+    end has come ``REACH`` down (A still hangs over B, or the sphere, on both sides)."""
     from sandbox.api import Sandbox
     from sandbox.levels.loader import load_level_from_string
 

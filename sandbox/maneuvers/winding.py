@@ -27,7 +27,8 @@ from sandbox.maneuvers.knotting import check_two_strands, rope_holds, within_hol
 
 
 STUCK_FRAMES = 15
-"""Frames a particle held back by the rope's reach may go without closing on its target before it is laid there."""
+"""Frames a particle whose command is held back (by the rope's reach from the hands that hold C, or by T's tube)
+may go without closing on its target before it is laid where it stopped."""
 STUCK_GAIN = 0.01
 """Closing on the target by less than this fraction of a rod in a frame counts as not closing."""
 MAX_TICKS_PER_PARTICLE = 90
@@ -330,8 +331,8 @@ class Winding(Maneuver):
         if np.linalg.norm(self.pos - axis) < self.R:
             self.pos = self._around(before, target, step)
         self.pos = self._keep_holds(idx, self.pos)
-        # Held back: by the hands that hold C, or by the tube, where T has moved over the target since it
-        # was traced (the re-trace follows T only while the turns are laid).
+        # Held back: by the hands that hold C, or by the tube (on every step that goes round T; a command
+        # that the tube keeps from a target T has moved over since it was traced stops closing on it).
         held_back = float(np.linalg.norm(self.pos - wanted)) > 1e-9
         w.control.drive([idx], self.pos[None, :])
         x = w.positions()[idx]
@@ -342,7 +343,7 @@ class Winding(Maneuver):
         else:
             self.stuck += 1
         # Out of reach: the hands that hold C, or T's tube, keep the command
-        # short of the target, and the particle has stopped closing on it. The plan gives
+        # off the target, and the particle has stopped closing on it. The plan gives
         # way: the particle is laid where the rope lets it, and the next one
         # goes on from there, instead of waiting out the timeout.
         out_of_reach = held_back and self.stuck >= STUCK_FRAMES
@@ -399,7 +400,7 @@ class Winding(Maneuver):
         """``note``: the particles laid short of their targets, and the times the laid turns were laid again."""
         notes = []
         if self.off_target:
-            notes.append(f"{len(self.off_target)} particle(s) laid short of a target the rope could not "
+            notes.append(f"{len(self.off_target)} particle(s) laid short of a target the hand could not "
                          f"reach (at most {max(self.off_target) * 1e3:.1f} mm)")
         if self.relaid:
             notes.append(f"the laid turns slipped off {self.params.target!r} {self.relaid} time(s) "
