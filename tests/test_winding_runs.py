@@ -303,6 +303,12 @@ def _rope_wind_winding_done() -> dict:
     return next(e for e in w.fsm.events if e["type"] == "done" and e["state"] == "1:Winding")
 
 
+def _laid_short_mm(done: dict) -> float:
+    """The one particle a Winding's done event says it laid short, and how far short (mm)."""
+    assert done["message"].startswith("1 particle(s) laid short"), done
+    return float(done["message"].split("at most ")[1].split(" mm")[0])
+
+
 def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(monkeypatch):
     """When the hands that hold C keep a particle's command short of its target (the rope's reach; here
     the fourth particle's command is held 6 mm short), the particle is laid where it stops and the winding
@@ -321,8 +327,7 @@ def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(
 
     monkeypatch.setattr(winding.Winding, "_keep_holds", short)
     done = _rope_wind_winding_done()
-    assert done["message"].startswith("1 particle(s) laid short"), done
-    missed = float(done["message"].split("at most ")[1].split(" mm")[0])
+    missed = _laid_short_mm(done)
     assert 4.0 < missed < 8.0, done  # about the 6 mm the command was held back, within the rope's sag
 
 
@@ -345,8 +350,7 @@ def test_a_target_inside_t_s_tube_is_laid_short_and_the_winding_goes_on(monkeypa
 
     monkeypatch.setattr(winding.Winding, "_targets", inside)
     done = _rope_wind_winding_done()
-    assert done["message"].startswith("1 particle(s) laid short"), done
-    missed = float(done["message"].split("at most ")[1].split(" mm")[0])
+    missed = _laid_short_mm(done)
     assert 4.0 < missed < 12.0, done  # the target lies R / 2 = 8.25 mm inside the tube the particle keeps out of
 
 
