@@ -137,6 +137,8 @@ class Tightening(Maneuver):
             held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
             if len(held):
                 w.control.release(held)
+        if p.force is not None:
+            self._hold_kept(x)
         self.ends = []
         # Where each pull and the push aim (places beside an object follow it).
         self.aims = [follow_target(w, q.toward) if q.toward is not None else None for q in p.pulls]
@@ -270,6 +272,25 @@ class Tightening(Maneuver):
                 self._grip(k, idx, x)
         self._grip_kept(x)
 
+    def _kept_hands(self) -> list[np.ndarray]:
+        """Particles of the ``keep`` sites held by a hand (kinematic or gripped, not by an anchor), per site."""
+        w = self.world
+        out = []
+        for k in self.params.keep:
+            for s in k.sites:
+                idx = w.site_particles(k.body, s)
+                idx = idx[w.control.is_driven(idx) & ~w.control.is_anchored(idx)]
+                if len(idx):
+                    out.append(idx)
+        return out
+
+    def _hold_kept(self, x: np.ndarray) -> None:
+        """Force mode: the hands on the ``keep`` sites hold them where they are for the pull, firmly. A hand
+        that gripped a site pulling it (a tail left gripped by a Tightening before) stops pulling: kept is held,
+        and a grip weaker than this pull would let the rope be drawn through it."""
+        for idx in self._kept_hands():
+            self.world.control.drive(idx, x[idx])
+
     def _grip_kept(self, x: np.ndarray) -> None:
         """Turn the kinematic hands on the ``keep`` sites into grips of the Tightening's force, where the
         sites are now (an anchor, ``Control.anchor``, keeps holding firmly). A tight knot between a hand that
@@ -277,12 +298,8 @@ class Tightening(Maneuver):
         its last Tightening, kept B's stretch to the knot at 0.2-0.5 m/s and pressed it 0.1-0.3 mm into A
         every frame, 400 frames on (largest overlap 0.108 radius); gripped, 0.032 at most."""
         p, w = self.params, self.world
-        for k in p.keep:
-            for s in k.sites:
-                idx = w.site_particles(k.body, s)
-                idx = idx[w.control.is_kinematic(idx) & ~w.control.is_anchored(idx)]
-                if len(idx):
-                    w.control.grip(idx, x[idx], p.force / len(idx), p.force / p.speed / len(idx))
+        for idx in self._kept_hands():
+            w.control.grip(idx, x[idx], p.force / len(idx), p.force / p.speed / len(idx))
 
     def _grip(self, k: int, idx: np.ndarray, x: np.ndarray) -> None:
         """Pull ``k``'s hand holds its particles ``idx`` where they are (``Control.grip``): it goes on pulling
