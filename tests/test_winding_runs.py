@@ -331,6 +331,42 @@ def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(
     assert 4.0 < missed < 8.0, done  # about the 6 mm the command was held back, within the rope's sag
 
 
+def test_after_a_particle_laid_short_by_the_rope_s_reach_the_next_ones_reach_only_from_it(monkeypatch):
+    """A particle laid short because the rope's reach from the hands held its command back marks the rope
+    taut up to it: the particles after it are commanded no further from where it lies than the rope
+    between them (REACH_SLACK rods per rod), not within a reach measured straight from the hands before it,
+    which passes through T. Here the fourth particle's command is held 6 mm short, as by the reach."""
+    from sandbox.maneuvers import winding
+
+    keep = winding.Winding._keep_holds
+
+    def short(self, idx, pos):
+        pos = keep(self, idx, pos)
+        if self.k == 3:
+            target = self.targets[3]
+            away = self.world.positions()[self._particle(2)].astype(np.float64) - target
+            self.reach_held = True  # held back as the holds' reach holds a command back
+            return target + 0.006 * away / np.linalg.norm(away)
+        return pos
+
+    update = winding.Winding.update
+    after: list[float] = []  # rods from the short particle to each later command, once it is let go
+
+    def watch(self):
+        status = update(self)
+        if 3 < self.k < self.n and self.taut_at is not None and not self.world.control.is_driven([self.taut_at])[0]:
+            x = self.world.positions().astype(np.float64)
+            rods = abs(float(self.c.along(self._particle(self.k))) - float(self.c.along(self.taut_at)))
+            after.append(float(np.linalg.norm(self.pos - x[self.taut_at])) / (rods * self.c.rod_length))
+        return status
+
+    monkeypatch.setattr(winding.Winding, "_keep_holds", short)
+    monkeypatch.setattr(winding.Winding, "update", watch)
+    done = _rope_wind_winding_done()
+    assert 4.0 < _laid_short_mm(done) < 8.0, done
+    assert after and max(after) <= winding.REACH_SLACK + 1e-6, max(after)
+
+
 def test_a_target_inside_t_s_tube_is_laid_short_and_the_winding_goes_on(monkeypatch):
     """Where T has moved over a particle's target (here the fourth target is put halfway to T's axis, inside
     the tube the hand keeps the particle out of), the tube holds the command back: the particle is laid where

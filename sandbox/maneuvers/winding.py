@@ -116,6 +116,10 @@ class Winding(Maneuver):
         self.off_target: list[float] = []  # how far short each particle laid out of reach stayed (m)
         self.relaid = 0  # times the laid turns slipped and were laid again (``_slipped``)
         self.short = -1  # the last particle (k) laid short of a target out of reach: turns up to it are not re-laid
+        # The last particle laid short because the rope from the hands that hold C could not reach further:
+        # the rope is taut up to it, and the particles after it reach only from where it lies (``_keep_holds``).
+        self.taut_at: int | None = None
+        self.reach_held = False  # whether the holds' reach held the current command back this frame
         self.targets = self._targets(xt)
         n_left = (len(xc) - 1 - self.i0) if p.direction > 0 else self.i0
         self.too_short = self.n_turns - 1 > n_left  # the turns cannot be laid: the winding fails (``update``)
@@ -350,6 +354,8 @@ class Winding(Maneuver):
         if out_of_reach:
             self.off_target.append(miss)
             self.short = self.k
+            if self.reach_held:
+                self.taut_at = idx
             self._notes()
         if out_of_reach or (miss <= p.tolerance * self.c.rod_length and dist <= step):
             if self.k + 1 < self.n and not (p.pinch and self.k == 0):
@@ -439,9 +445,14 @@ class Winding(Maneuver):
         can go: at most ``REACH_SLACK`` k rods from it, or as far as it is
         now where that is more (``within_holds``); a command past that would
         stretch the rope between them by more than half the levels' 1 %
-        strain bar. Two held neighbours are joined by one rod that
-        nothing else can fix: a command nearer or further than its rest
-        length (a pinched crossing particle held where G was traced before T
+        strain bar. So does the last particle laid short because that reach
+        held it back (``taut_at``), where it lies now: the rope up to it is
+        taut, wound round T, and a reach measured straight from the holds
+        before it passes through T (granny_knot, z -5 cm nudged: the next
+        particle, carried on within that straight reach, drew the laid turn
+        taut round T and stretched it 23 % in three frames). Two held
+        neighbours are joined by one rod that nothing else can fix: a command
+        nearer or further than its rest length (a pinched crossing particle held where G was traced before T
         moved, the next target sampled on the new G) would compress or
         stretch it, so that rule has the last word.
         """
@@ -450,10 +461,15 @@ class Winding(Maneuver):
         near = [int(self.c.line[j]) for j in (a - 1, a + 1) if 0 <= j < len(self.c.line)]
         holds = rope_holds(w, self.c, {idx, *near})
         held = [h for h in near if self.c.has(h) and w.control.is_driven([h])[0]]
-        x = w.positions() if holds or held else None  # one read-back of the particles, only when needed
+        taut = self.taut_at is not None and self.taut_at != idx and not w.control.is_driven([self.taut_at])[0]
+        x = w.positions() if holds or held or taut else None  # one read-back of the particles, only when needed
+        if taut:
+            holds.append((int(self.c.along(self.taut_at)), x[self.taut_at].astype(np.float64)))
+        self.reach_held = False
         if holds:
-            pos, _ = within_holds(pos, float(self.c.along(idx)), holds, self.c.rod_length, REACH_SLACK,
-                                  x[idx].astype(np.float64))
+            pos, limit = within_holds(pos, float(self.c.along(idx)), holds, self.c.rod_length, REACH_SLACK,
+                                      x[idx].astype(np.float64))
+            self.reach_held = limit is not None
         for h in held:
             xh = x[h].astype(np.float64)
             v = pos - xh
