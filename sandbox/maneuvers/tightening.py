@@ -62,7 +62,7 @@ class Push(Params):
 class TighteningParams(Params):
     pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]  # the ends pulled: {body, site, direction or toward, force, distance}
     push: Push | None = None  # a hand that pushes the last wound part: {toward (a point or knot), force, speed}
-    keep: list[Kept] = []  # held sites that are not let go when the pull starts; with force, their hands grip them where they are once the pull ends, holding, not pulling (an Anchoring's hold stays)
+    keep: list[Kept] = []  # held sites that are not let go when the pull starts; with force, a hand that holds one firmly grips it where it is once the pull ends (an Anchoring's hold stays)
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
     # N: pull each end with this force instead of moving it; ``speed`` is then
@@ -113,11 +113,11 @@ class Tightening(Maneuver):
     held where they are by hands that keep pulling as hard as they pulled
     but move no further (``Control.grip``): a knot drawn tighter than that
     slips through them instead of snapping through itself against hands
-    that cannot give. With ``force``, the hands on the kept sites grip them
-    where they are, with ``force``, once the pull ends, and only hold them
-    (a hand that pulled one stops pulling); such a grip is a firm hold again
-    for the next Tightening by force that keeps the site. An Anchoring's
-    hold on a kept site stays as it is.
+    that cannot give. With ``force``, a hand that holds a kept site
+    kinematically grips it where it is, with ``force``, once the pull ends,
+    and such a grip is a firm hold again for the next Tightening by force
+    that keeps the site; an Anchoring's hold, and a grip that pulls, stay as
+    they are.
     A pull may set its own ``force``, and its own ``distance``: that end is
     held once it is that far from where it started (a standing part that a
     cloth draws taut gives its slack, and no more), while the others pull on;
@@ -292,17 +292,14 @@ class Tightening(Maneuver):
                 w.control.drive(idx, x[idx])
 
     def _grip_kept(self, x: np.ndarray) -> None:
-        """The hands on the ``keep`` sites (kinematic, or gripping, pulling or not) grip them where they are with
-        the Tightening's force, and only hold them: kept is held, not pulled (an anchor, ``Control.anchor``,
-        keeps holding firmly). A tight knot between a hand that cannot give and others that can never comes
-        to rest: square_knot's B tail, held kinematically after its last Tightening, kept B's stretch to the
-        knot at 0.2-0.5 m/s and pressed it 0.1-0.3 mm into A every frame, 400 frames on (largest overlap
-        0.108 radius); gripped, 0.032 at most. A hand that pulled on after it (A's tail, still drawn toward
-        where the Tightening before it sent it) drew the knot 3 cm along the box's top once the other tail
-        was gripped."""
+        """Turn the kinematic hands on the ``keep`` sites into grips that hold them where they are, with the
+        Tightening's force (an anchor, ``Control.anchor``, keeps holding firmly). A tight knot between a hand
+        that cannot give and others that can never comes to rest: square_knot's B tail, held kinematically
+        after its last Tightening, kept B's stretch to the knot at 0.2-0.5 m/s and pressed it 0.1-0.3 mm into
+        A every frame, 400 frames on (largest overlap 0.108 radius); gripped, 0.032 at most."""
         p, w = self.params, self.world
         for idx in self._kept_sites():
-            idx = idx[w.control.is_driven(idx) & ~w.control.is_anchored(idx)]
+            idx = idx[w.control.is_kinematic(idx) & ~w.control.is_anchored(idx)]
             if len(idx):
                 w.control.grip(idx, x[idx], p.force / len(idx), p.force / p.speed / len(idx), pulling=False)
 
