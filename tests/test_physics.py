@@ -263,9 +263,8 @@ def test_a_grip_needs_a_force():
 
 
 def test_a_hold_records_whether_an_anchor_or_a_hand_holds_it():
-    """``anchor`` and ``drive`` hold alike; only the record differs (so does a grip that pulls and one that
-    only holds). Moving a hold's target keeps its holder (a carried rope's pins); any other change of hold,
-    and a rollback, set or restore it."""
+    """``anchor`` and ``drive`` hold alike; only the record differs. Moving a hold's target keeps its holder
+    (a carried rope's pins); any other change of hold, and a rollback, set or restore it."""
     from sandbox.model.model import Control
 
     ctl = Control(4, np.zeros((4, 3)))
@@ -278,12 +277,10 @@ def test_a_hold_records_whether_an_anchor_or_a_hand_holds_it():
     np.testing.assert_allclose(ctl.target([0]), [[2.0, 2.0, 2.0]])
     snap = ctl.snapshot()
     ctl.grip([0], [[0.0, 0.0, 0.0]], 1.0, 1.0)
-    ctl.grip([3], [[0.0, 0.0, 0.0]], 1.0, 1.0, pulling=False)
     ctl.drive([1], np.ones((1, 3)))
     assert not ctl.is_anchored([0, 1]).any()
-    assert list(ctl.is_holding([0, 3])) == [False, True]  # a grip pulls unless it only holds
     ctl.restore(snap)
-    assert ctl.is_anchored([0, 1]).all() and not ctl.is_holding([3]).any()
+    assert ctl.is_anchored([0, 1]).all()
     for let_go in (lambda: ctl.pull([0], np.zeros((1, 3)), 1.0), lambda: ctl.release([0])):
         ctl.anchor([0], np.ones((1, 3)))
         let_go()

@@ -62,7 +62,7 @@ class Push(Params):
 class TighteningParams(Params):
     pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]  # the ends pulled: {body, site, direction or toward, force, distance}
     push: Push | None = None  # a hand that pushes the last wound part: {toward (a point or knot), force, speed}
-    keep: list[Kept] = []  # held sites that are not let go when the pull starts; with force, a hand that holds one firmly grips it where it is once the pull ends (an Anchoring's hold stays)
+    keep: list[Kept] = []  # held sites that are not let go when the pull starts; with force, a hand on one holds it where it is and grips it there once the pull ends (an Anchoring's hold stays)
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
     # N: pull each end with this force instead of moving it; ``speed`` is then
@@ -113,11 +113,10 @@ class Tightening(Maneuver):
     held where they are by hands that keep pulling as hard as they pulled
     but move no further (``Control.grip``): a knot drawn tighter than that
     slips through them instead of snapping through itself against hands
-    that cannot give. With ``force``, a hand that holds a kept site
-    kinematically grips it where it is, with ``force``, once the pull ends,
-    and such a grip is a firm hold again for the next Tightening by force
-    that keeps the site; an Anchoring's hold, and a grip that pulls, stay as
-    they are.
+    that cannot give. With ``force``, a hand on a kept site holds it where
+    it is for the pull, firmly (a hand that gripped it, still pulling, stops
+    pulling), and grips it there with ``force`` once the pull ends; an
+    Anchoring's hold on a kept site stays as it is.
     A pull may set its own ``force``, and its own ``distance``: that end is
     held once it is that far from where it started (a standing part that a
     cloth draws taut gives its slack, and no more), while the others pull on;
@@ -276,32 +275,34 @@ class Tightening(Maneuver):
                 self._grip(k, idx, x)
         self._grip_kept(x)
 
-    def _kept_sites(self) -> list[np.ndarray]:
-        """Particles of each ``keep`` site."""
-        return [self.world.site_particles(k.body, s) for k in self.params.keep for s in k.sites]
+    def _kept_hands(self) -> list[np.ndarray]:
+        """Particles of the ``keep`` sites held by a hand (kinematic or gripped, not by an anchor), per site."""
+        w = self.world
+        out = []
+        for k in self.params.keep:
+            for s in k.sites:
+                idx = w.site_particles(k.body, s)
+                idx = idx[w.control.is_driven(idx) & ~w.control.is_anchored(idx)]
+                if len(idx):
+                    out.append(idx)
+        return out
 
     def _hold_kept(self, x: np.ndarray) -> None:
-        """Force mode: a kept site that a hand only holds by a grip (``Control.is_holding``: the grip a Tightening
-        before left on it, ``_grip_kept``) is held firmly again, where it is, for this pull: a grip weaker than
-        this pull would let the rope be drawn through it (granny_knot: the second half's tail, gripped at
-        the 0.4 N of its Tightening, slipped under the standing parts' 0.5 N, and the knot came loose)."""
-        w = self.world
-        for idx in self._kept_sites():
-            idx = idx[w.control.is_holding(idx)]
-            if len(idx):
-                w.control.drive(idx, x[idx])
+        """Force mode: the hands on the ``keep`` sites hold them where they are for the pull, firmly. A hand
+        that gripped a site pulling it (a tail left gripped by a Tightening before) stops pulling: kept is held,
+        and a grip weaker than this pull would let the rope be drawn through it."""
+        for idx in self._kept_hands():
+            self.world.control.drive(idx, x[idx])
 
     def _grip_kept(self, x: np.ndarray) -> None:
-        """Turn the kinematic hands on the ``keep`` sites into grips that hold them where they are, with the
-        Tightening's force (an anchor, ``Control.anchor``, keeps holding firmly). A tight knot between a hand
-        that cannot give and others that can never comes to rest: square_knot's B tail, held kinematically
-        after its last Tightening, kept B's stretch to the knot at 0.2-0.5 m/s and pressed it 0.1-0.3 mm into
-        A every frame, 400 frames on (largest overlap 0.108 radius); gripped, 0.032 at most."""
+        """Turn the kinematic hands on the ``keep`` sites into grips of the Tightening's force, where the
+        sites are now (an anchor, ``Control.anchor``, keeps holding firmly). A tight knot between a hand that
+        cannot give and others that can never comes to rest: square_knot's B tail, held kinematically after
+        its last Tightening, kept B's stretch to the knot at 0.2-0.5 m/s and pressed it 0.1-0.3 mm into A
+        every frame, 400 frames on (largest overlap 0.108 radius); gripped, 0.032 at most."""
         p, w = self.params, self.world
-        for idx in self._kept_sites():
-            idx = idx[w.control.is_kinematic(idx) & ~w.control.is_anchored(idx)]
-            if len(idx):
-                w.control.grip(idx, x[idx], p.force / len(idx), p.force / p.speed / len(idx), pulling=False)
+        for idx in self._kept_hands():
+            w.control.grip(idx, x[idx], p.force / len(idx), p.force / p.speed / len(idx))
 
     def _grip(self, k: int, idx: np.ndarray, x: np.ndarray) -> None:
         """Pull ``k``'s hand holds its particles ``idx`` where they are (``Control.grip``): it goes on pulling

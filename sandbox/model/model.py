@@ -166,7 +166,6 @@ class Control:
         self._drag = np.zeros(n, np.float32)
         self._grip = np.zeros(n, np.float32)
         self._anchored = np.zeros(n, bool)
-        self._pulling = np.zeros(n, bool)
         self._dirty = True
 
     def drive(self, idx, targets) -> None:
@@ -209,18 +208,15 @@ class Control:
         self._grip[idx] = 0.0
         self._dirty = True
 
-    def grip(self, idx, places, force, drag, pulling: bool = True) -> None:
+    def grip(self, idx, places, force, drag) -> None:
         """Hold particles ``idx`` at ``places`` (m) by a hand that pulls each back with at most ``force`` N
         (``GRIP_GIVE`` from its place and beyond) against a drag of ``drag`` N s/m: a hand that holds an end
-        as hard as it pulled it, and lets it slip when the rope pulls harder. ``pulling``: the places lie
-        beyond the particles along a pull (the hand pulls on with its force); else they are where the
-        particles are (the hand only holds them there; ``is_holding``)."""
+        as hard as it pulled it, and lets it slip when the rope pulls harder."""
         if not force > 0 or not drag >= 0:
             raise ValueError(f"a grip needs a force > 0 N and a drag >= 0 N s/m, got {force} and {drag}")
         idx = np.atleast_1d(np.asarray(idx, np.int64))
         self._driven[idx] = 3
         self._anchored[idx] = False
-        self._pulling[idx] = pulling
         self._dst[idx] = np.asarray(places, np.float32).reshape(len(idx), 3)
         self._force[idx] = 0.0
         self._drag[idx] = drag
@@ -250,11 +246,6 @@ class Control:
         idx = np.asarray(idx)
         return (self._driven[idx] == 1) & self._anchored[idx]
 
-    def is_holding(self, idx) -> np.ndarray:
-        """Whether particles ``idx`` are gripped by a hand that only holds them (``grip(pulling=False)``)."""
-        idx = np.asarray(idx)
-        return (self._driven[idx] == 3) & ~self._pulling[idx]
-
     def is_gripped(self, idx) -> np.ndarray:
         """Whether particles ``idx`` are gripped (held by a hand that gives, ``grip``)."""
         return self._driven[np.asarray(idx)] == 3
@@ -278,12 +269,11 @@ class Control:
     def snapshot(self) -> tuple:
         """Copy of the host-side targets and forces (for rollback)."""
         return (self._driven.copy(), self._dst.copy(), self._force.copy(), self._drag.copy(), self._grip.copy(),
-                self._anchored.copy(), self._pulling.copy())
+                self._anchored.copy())
 
     def restore(self, snap: tuple) -> None:
         """Restore a :meth:`snapshot`; uploaded at the next frame."""
-        (self._driven[:], self._dst[:], self._force[:], self._drag[:], self._grip[:], self._anchored[:],
-         self._pulling[:]) = snap
+        self._driven[:], self._dst[:], self._force[:], self._drag[:], self._grip[:], self._anchored[:] = snap
         self._dirty = True
 
     @property
