@@ -494,35 +494,6 @@ def test_a_kept_end_held_by_a_hand_is_gripped_once_the_knot_is_tight():
     assert np.linalg.norm(x1[0] - x[0]) < 3 * GRIP_GIVE and np.linalg.norm(x1[-1] - x[-1]) < 3 * GRIP_GIVE
 
 
-def test_a_kept_end_that_a_hand_gripped_pulling_is_held_where_it_is():
-    """An end left gripped by one Tightening (its hand pulls on) and kept by the next is held firmly for the
-    next pull, and then gripped where it is with that pull's force: kept is held, not pulled."""
-    level = SLACK_PULL.replace("sites: [start, end]}}", "sites: [start, end]}}\n  - {run: Wait, with: {seconds: 0.1}}")
-    level = level.replace("keep: [{body: R, sites: [start]}], force: 1.0",
-                          "keep: [{body: R, sites: [start]}], force: 0.3") + (
-        "  - {run: Tightening, with: {pulls: [{body: R, site: start, direction: [-1, 0, 0]}],\n"
-        "                             keep: [{body: R, sites: [end]}], force: 0.6, speed: 0.2, distance: 0.5}}\n")
-    w = _world(level)
-    n = len(w.rope_positions("R"))
-    gripped = False
-    while not w.fsm.state.endswith("4:Tightening"):
-        w.step()
-        gripped |= bool(w.control.is_gripped([n - 1])[0])
-    assert not gripped  # the second Tightening took it over in the frame the first gripped it
-    assert w.control.is_kinematic([n - 1]).all()  # held for the second pull
-    held = w.rope_positions("R")[-1].copy()
-    for _ in range(700):
-        w.step()
-        if w.fsm.finished:
-            break
-    assert w.fsm.succeeded, w.fsm.events
-    x = w.rope_positions("R")
-    np.testing.assert_allclose(x[-1], held, atol=1e-5)  # firmly
-    assert w.control.is_gripped([0, n - 1]).all()
-    assert w.control.grips()[n - 1] == pytest.approx(0.6)
-    np.testing.assert_allclose(w.control.target([n - 1])[0], x[-1], atol=1e-6)  # where it is: it no longer pulls
-
-
 def _heads_toward(w, goal: np.ndarray) -> np.ndarray:
     """Step until the Tightening starts; over the next 10 frames R's pulled end heads for ``goal``.
     Returns where the end was when the Tightening started."""

@@ -62,7 +62,7 @@ class Push(Params):
 class TighteningParams(Params):
     pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]  # the ends pulled: {body, site, direction or toward, force, distance}
     push: Push | None = None  # a hand that pushes the last wound part: {toward (a point or knot), force, speed}
-    keep: list[Kept] = []  # held sites that are not let go when the pull starts; with force, a hand on one holds it where it is and grips it there once the pull ends (an Anchoring's hold stays)
+    keep: list[Kept] = []  # held sites that are not let go when the pull starts; a hand's hold on them gives once the knot is tight (force mode), an Anchoring's does not
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
     # N: pull each end with this force instead of moving it; ``speed`` is then
@@ -113,10 +113,7 @@ class Tightening(Maneuver):
     held where they are by hands that keep pulling as hard as they pulled
     but move no further (``Control.grip``): a knot drawn tighter than that
     slips through them instead of snapping through itself against hands
-    that cannot give. With ``force``, a hand on a kept site holds it where
-    it is for the pull, firmly (a hand that gripped it, still pulling, stops
-    pulling), and grips it there with ``force`` once the pull ends; an
-    Anchoring's hold on a kept site stays as it is.
+    that cannot give.
     A pull may set its own ``force``, and its own ``distance``: that end is
     held once it is that far from where it started (a standing part that a
     cloth draws taut gives its slack, and no more), while the others pull on;
