@@ -562,7 +562,7 @@ class World:
         """Drive particles ``idx`` to their places ``local`` (m, in the motion's frame) under the motion's pose
         at the end of the coming frame: a rope's pins, and the holds that ride on it."""
         pos, rot = keyframe_pose(motion, self.time + self.dt)
-        self.control.move(idx, local @ rot.T + pos)
+        self.control.drive(idx, local @ rot.T + pos)
 
     def body_scale(self, name: str) -> float:
         """Length scale of a body for relative penetration: rope radius or cloth thickness (m)."""

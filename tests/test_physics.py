@@ -262,31 +262,6 @@ def test_a_grip_needs_a_force():
     assert not sim.world.control.is_driven([0, 1]).any()  # nothing half set
 
 
-def test_a_hold_records_whether_an_anchor_or_a_hand_holds_it():
-    """``anchor`` and ``drive`` hold alike; only the record differs. Moving a hold's target keeps its holder
-    (a carried rope's pins); any other change of hold, and a rollback, set or restore it."""
-    from sandbox.model.model import Control
-
-    ctl = Control(4, np.zeros((4, 3)))
-    ctl.anchor([0, 1], np.ones((2, 3)))
-    ctl.drive([2], np.ones((1, 3)))
-    assert ctl.is_kinematic([0, 1, 2]).all()
-    assert list(ctl.is_anchored([0, 1, 2, 3])) == [True, True, False, False]
-    ctl.move([0, 2, 3], np.full((3, 3), 2.0))
-    assert list(ctl.is_anchored([0, 2, 3])) == [True, False, False] and ctl.is_kinematic([3]).all()
-    np.testing.assert_allclose(ctl.target([0]), [[2.0, 2.0, 2.0]])
-    snap = ctl.snapshot()
-    ctl.grip([0], [[0.0, 0.0, 0.0]], 1.0, 1.0)
-    ctl.drive([1], np.ones((1, 3)))
-    assert not ctl.is_anchored([0, 1]).any()
-    ctl.restore(snap)
-    assert ctl.is_anchored([0, 1]).all()
-    for let_go in (lambda: ctl.pull([0], np.zeros((1, 3)), 1.0), lambda: ctl.release([0])):
-        ctl.anchor([0], np.ones((1, 3)))
-        let_go()
-        assert not ctl.is_anchored([0]).any()
-
-
 def test_simple_pendulum_period():
     """A pinned one-rod rope swings with the simple pendulum's finite-amplitude period 2 pi sqrt(L/g) (1 + theta0^2/16)."""
     L, theta0, fps = 0.5, math.radians(8.0), 60

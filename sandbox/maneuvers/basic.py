@@ -141,7 +141,7 @@ class Anchoring(Maneuver):
             x = x - x.mean(axis=0) + resolve_target(w, p.at)
         if p.object is not None:
             idx, x = self._place(idx, x, x_all)
-        w.control.anchor(idx, x)
+        w.control.drive(idx, x)
 
     def _place(self, idx, x, x_all):
         w = self.world

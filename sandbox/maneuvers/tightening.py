@@ -62,7 +62,7 @@ class Push(Params):
 class TighteningParams(Params):
     pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]  # the ends pulled: {body, site, direction or toward, force, distance}
     push: Push | None = None  # a hand that pushes the last wound part: {toward (a point or knot), force, speed}
-    keep: list[Kept] = []  # held sites that are not let go when the pull starts; a hand's hold on them gives once the knot is tight (force mode), an Anchoring's does not
+    keep: list[Kept] = []  # held sites that are not let go when the pull starts (standing ends an object holds)
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
     # N: pull each end with this force instead of moving it; ``speed`` is then
@@ -137,8 +137,6 @@ class Tightening(Maneuver):
             held = idx[w.control.is_driven(idx) & ~np.isin(idx, pulled)]
             if len(held):
                 w.control.release(held)
-        if p.force is not None:
-            self._hold_kept(x)
         self.ends = []
         # Where each pull and the push aim (places beside an object follow it).
         self.aims = [follow_target(w, q.toward) if q.toward is not None else None for q in p.pulls]
@@ -265,41 +263,10 @@ class Tightening(Maneuver):
         return strain, overlap
 
     def _hold_ends(self, x: np.ndarray) -> None:
-        """Hold every pulled end where it is now (force mode: ``_grip``), and let the hands that hold kept
-        sites give as well (``_grip_kept``)."""
+        """Hold every pulled end where it is now (force mode: ``_grip``)."""
         for k, (idx, _, _) in enumerate(self.ends):
             if k not in self.capped:
                 self._grip(k, idx, x)
-        self._grip_kept(x)
-
-    def _kept_hands(self) -> list[np.ndarray]:
-        """Particles of the ``keep`` sites held by a hand (kinematic or gripped, not by an anchor), per site."""
-        w = self.world
-        out = []
-        for k in self.params.keep:
-            for s in k.sites:
-                idx = w.site_particles(k.body, s)
-                idx = idx[w.control.is_driven(idx) & ~w.control.is_anchored(idx)]
-                if len(idx):
-                    out.append(idx)
-        return out
-
-    def _hold_kept(self, x: np.ndarray) -> None:
-        """Force mode: the hands on the ``keep`` sites hold them where they are for the pull, firmly. A hand
-        that gripped a site pulling it (a tail left gripped by a Tightening before) stops pulling: kept is held,
-        and a grip weaker than this pull would let the rope be drawn through it."""
-        for idx in self._kept_hands():
-            self.world.control.drive(idx, x[idx])
-
-    def _grip_kept(self, x: np.ndarray) -> None:
-        """Turn the kinematic hands on the ``keep`` sites into grips of the Tightening's force, where the
-        sites are now (an anchor, ``Control.anchor``, keeps holding firmly). A tight knot between a hand that
-        cannot give and others that can never comes to rest: square_knot's B tail, held kinematically after
-        its last Tightening, kept B's stretch to the knot at 0.2-0.5 m/s and pressed it 0.1-0.3 mm into A
-        every frame, 400 frames on (largest overlap 0.108 radius); gripped, 0.032 at most."""
-        p, w = self.params, self.world
-        for idx in self._kept_hands():
-            w.control.grip(idx, x[idx], p.force / len(idx), p.force / p.speed / len(idx))
 
     def _grip(self, k: int, idx: np.ndarray, x: np.ndarray) -> None:
         """Pull ``k``'s hand holds its particles ``idx`` where they are (``Control.grip``): it goes on pulling
@@ -336,7 +303,7 @@ class Tightening(Maneuver):
             if k in self.capped:
                 continue
             if q.distance is not None and float(np.linalg.norm(a - pos)) >= q.distance:
-                w.control.anchor(idx, x[idx])  # as far as the cloth gives (its slack): held there from now on, firmly
+                w.control.drive(idx, x[idx])  # as far as this end gives (its slack): held there from now on
                 self.capped.add(k)
             elif q.toward is not None:  # the pull turns to keep pointing at its point
                 self._pull(idx, self._heading(k, a), q.force)

@@ -82,7 +82,7 @@ class Model:
         """A new Control with the model's pins held at their rest positions."""
         ctl = Control(self.n, self.x0)
         if len(self.data.pins):
-            ctl.anchor(self.data.pins, self.x0[self.data.pins])
+            ctl.drive(self.data.pins, self.x0[self.data.pins])
         return ctl
 
 
@@ -145,11 +145,6 @@ class Control:
         force: (n,) vec3 f32, N, on pulled particles.
         drag: (n,) f32, N s/m, on pulled and gripped particles.
         grip_force: (n,) f32, N, the most a gripping hand pulls with.
-
-    A kinematic hold also records who holds it (host side only): an anchor (``anchor``: an
-    object, the ground or the cloth holds the site, as Anchoring does) or a hand (``drive``). A
-    hand can give once a knot is tight (Tightening turns the kept ends it holds into grips); an
-    anchor does not.
     """
 
     def __init__(self, n: int, x0: np.ndarray) -> None:
@@ -165,31 +160,11 @@ class Control:
         self._force = np.zeros((n, 3), np.float32)
         self._drag = np.zeros(n, np.float32)
         self._grip = np.zeros(n, np.float32)
-        self._anchored = np.zeros(n, bool)
         self._dirty = True
 
     def drive(self, idx, targets) -> None:
-        """Drive particles ``idx`` to ``targets`` (m) by the end of the next frame, held by a hand."""
+        """Drive particles ``idx`` to ``targets`` (m) by the end of the next frame."""
         idx = np.atleast_1d(np.asarray(idx, np.int64))
-        self._set_target(idx, targets)
-        self._anchored[idx] = False
-
-    def anchor(self, idx, targets) -> None:
-        """Hold particles ``idx`` at ``targets`` (m) as ``drive`` does, held by an anchor (an object, the
-        ground or the cloth), which does not give."""
-        idx = np.atleast_1d(np.asarray(idx, np.int64))
-        self._set_target(idx, targets)
-        self._anchored[idx] = True
-
-    def move(self, idx, targets) -> None:
-        """Move the kinematic targets of particles ``idx`` to ``targets`` (m), held by whoever held them
-        (a carried rope's pins, and the holds that ride on it); particles not held become held by a hand."""
-        idx = np.atleast_1d(np.asarray(idx, np.int64))
-        anchored = self._anchored[idx] & (self._driven[idx] == 1)
-        self._set_target(idx, targets)
-        self._anchored[idx] = anchored
-
-    def _set_target(self, idx: np.ndarray, targets) -> None:
         self._driven[idx] = 1
         self._dst[idx] = np.asarray(targets, np.float32).reshape(len(idx), 3)
         self._force[idx] = 0.0
@@ -202,7 +177,6 @@ class Control:
         per particle) and a drag of ``drag`` N s/m (their speed stays below |f| / drag)."""
         idx = np.atleast_1d(np.asarray(idx, np.int64))
         self._driven[idx] = 2
-        self._anchored[idx] = False
         self._force[idx] = np.asarray(forces, np.float32).reshape(len(idx), 3)
         self._drag[idx] = drag
         self._grip[idx] = 0.0
@@ -216,7 +190,6 @@ class Control:
             raise ValueError(f"a grip needs a force > 0 N and a drag >= 0 N s/m, got {force} and {drag}")
         idx = np.atleast_1d(np.asarray(idx, np.int64))
         self._driven[idx] = 3
-        self._anchored[idx] = False
         self._dst[idx] = np.asarray(places, np.float32).reshape(len(idx), 3)
         self._force[idx] = 0.0
         self._drag[idx] = drag
@@ -227,7 +200,6 @@ class Control:
         """Let particles ``idx`` move freely again (neither driven nor pulled)."""
         idx = np.atleast_1d(np.asarray(idx, np.int64))
         self._driven[idx] = 0
-        self._anchored[idx] = False
         self._force[idx] = 0.0
         self._drag[idx] = 0.0
         self._grip[idx] = 0.0
@@ -240,11 +212,6 @@ class Control:
     def is_kinematic(self, idx) -> np.ndarray:
         """Whether particles ``idx`` are driven kinematically (``drive``), not gripped."""
         return self._driven[np.asarray(idx)] == 1
-
-    def is_anchored(self, idx) -> np.ndarray:
-        """Whether particles ``idx`` are held kinematically by an anchor (``anchor``), not by a hand."""
-        idx = np.asarray(idx)
-        return (self._driven[idx] == 1) & self._anchored[idx]
 
     def is_gripped(self, idx) -> np.ndarray:
         """Whether particles ``idx`` are gripped (held by a hand that gives, ``grip``)."""
@@ -268,12 +235,11 @@ class Control:
 
     def snapshot(self) -> tuple:
         """Copy of the host-side targets and forces (for rollback)."""
-        return (self._driven.copy(), self._dst.copy(), self._force.copy(), self._drag.copy(), self._grip.copy(),
-                self._anchored.copy())
+        return self._driven.copy(), self._dst.copy(), self._force.copy(), self._drag.copy(), self._grip.copy()
 
     def restore(self, snap: tuple) -> None:
         """Restore a :meth:`snapshot`; uploaded at the next frame."""
-        self._driven[:], self._dst[:], self._force[:], self._drag[:], self._grip[:], self._anchored[:] = snap
+        self._driven[:], self._dst[:], self._force[:], self._drag[:], self._grip[:] = snap
         self._dirty = True
 
     @property
