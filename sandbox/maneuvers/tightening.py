@@ -43,7 +43,7 @@ class Pull(Params):
 
 
 class Kept(Params):
-    """Sites that a Tightening keeps holding (standing ends held by a hand, an object or the cloth)."""
+    """Sites that a Tightening keeps holding (standing ends or tails held by a hand, an object or the cloth)."""
 
     body: str
     sites: Annotated[list[Site], pydantic.Field(min_length=1)]
@@ -62,7 +62,7 @@ class Push(Params):
 class TighteningParams(Params):
     pulls: Annotated[list[Pull], pydantic.Field(min_length=1)]  # the ends pulled: {body, site, direction or toward, force, distance}
     push: Push | None = None  # a hand that pushes the last wound part: {toward (a point or knot), force, speed}
-    keep: list[Kept] = []  # held sites that are not let go when the pull starts (standing ends an object holds)
+    keep: list[Kept] = []  # held sites that are not let go when the pull starts (standing ends an object holds, tails a hand holds)
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
     # N: pull each end with this force instead of moving it; ``speed`` is then
