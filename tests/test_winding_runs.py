@@ -309,10 +309,9 @@ def _laid_short_mm(done: dict) -> float:
     return float(done["message"].split("at most ")[1].split(" mm")[0])
 
 
-def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(monkeypatch):
-    """When the hands that hold C keep a particle's command short of its target (the rope's reach; here
-    the fourth particle's command is held 6 mm short), the particle is laid where it stops and the winding
-    goes on to finish its turns, instead of failing after its timeout; the done event says so."""
+def _hold_fourth_short(monkeypatch, by_reach: bool = False) -> None:
+    """Hold the fourth wound particle's command 6 mm short of its target (towards the third particle), as the
+    hands' reach would; with ``by_reach`` the Winding is also told that the reach held it back."""
     from sandbox.maneuvers import winding
 
     keep = winding.Winding._keep_holds
@@ -322,10 +321,19 @@ def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(
         if self.k == 3:
             target = self.targets[3]
             away = self.world.positions()[self._particle(2)].astype(np.float64) - target
+            if by_reach:
+                self.reach_held = True
             return target + 0.006 * away / np.linalg.norm(away)
         return pos
 
     monkeypatch.setattr(winding.Winding, "_keep_holds", short)
+
+
+def test_a_particle_the_rope_cannot_reach_is_laid_short_and_the_winding_goes_on(monkeypatch):
+    """When the hands that hold C keep a particle's command short of its target (the rope's reach; here
+    the fourth particle's command is held 6 mm short), the particle is laid where it stops and the winding
+    goes on to finish its turns, instead of failing after its timeout; the done event says so."""
+    _hold_fourth_short(monkeypatch)
     done = _rope_wind_winding_done()
     missed = _laid_short_mm(done)
     assert 4.0 < missed < 8.0, done  # about the 6 mm the command was held back, within the rope's sag
@@ -338,16 +346,7 @@ def test_after_a_particle_laid_short_by_the_rope_s_reach_the_next_ones_reach_onl
     which passes through T. Here the fourth particle's command is held 6 mm short, as by the reach."""
     from sandbox.maneuvers import winding
 
-    keep = winding.Winding._keep_holds
-
-    def short(self, idx, pos):
-        pos = keep(self, idx, pos)
-        if self.k == 3:
-            target = self.targets[3]
-            away = self.world.positions()[self._particle(2)].astype(np.float64) - target
-            self.reach_held = True  # held back as the holds' reach holds a command back
-            return target + 0.006 * away / np.linalg.norm(away)
-        return pos
+    _hold_fourth_short(monkeypatch, by_reach=True)
 
     update = winding.Winding.update
     after: list[float] = []  # rods from the short particle to each later command, once it is let go
@@ -360,7 +359,6 @@ def test_after_a_particle_laid_short_by_the_rope_s_reach_the_next_ones_reach_onl
             after.append(float(np.linalg.norm(self.pos - x[self.taut_at])) / (rods * self.c.rod_length))
         return status
 
-    monkeypatch.setattr(winding.Winding, "_keep_holds", short)
     monkeypatch.setattr(winding.Winding, "update", watch)
     done = _rope_wind_winding_done()
     assert 4.0 < _laid_short_mm(done) < 8.0, done
