@@ -452,9 +452,10 @@ class Winding(Maneuver):
         particle, carried on within that straight reach, drew the laid turn
         taut round T and stretched it 23 % in three frames). Two held
         neighbours are joined by one rod that nothing else can fix: a command
-        nearer or further than its rest length (a pinched crossing particle held where G was traced before T
-        moved, the next target sampled on the new G) would compress or
-        stretch it, so that rule has the last word.
+        nearer or further than its rest length (a pinched crossing particle
+        held where G was traced before T moved, the next target sampled on
+        the new G) would compress or stretch it, so that rule has the last
+        word. Sets ``reach_held``: whether the holds' reach moved ``pos``.
         """
         w = self.world
         a = int(self.c.along(idx))
