@@ -612,40 +612,6 @@ def test_crossing_above_a_contact_fails_when_the_strands_do_not_touch():
     assert any("does not touch" in e["message"] for e in w.fsm.events)
 
 
-def test_tightening_at_a_place_carries_the_knot_back_with_the_kept_hands():
-    """With ``at``, the hands on the kept sites move together, level and at most ``AT_SPEED``, against the
-    knot's drift from that place (here the rope's middle, 0.58 m from it across); without it they stay put;
-    a hand pulling the rope is not one of them. Held places move as they were held: a kept kinematic hand
-    stays kinematic."""
-    from sandbox.maneuvers.tightening import AT_SPEED, AT_TOLERANCE
-
-    def run(at):
-        w = _world(SLACK_PULL.replace("distance: 0.5}", f"distance: 0.5{at}}}"))
-        start = int(w.site_particles("R", "start")[0])
-        places, drift = [], []
-        while not w.fsm.finished and w.frame < 400:
-            w.step()
-            m = w.fsm._maneuver
-            if m is not None and m.name == "Tightening":
-                places.append(w.control.target([start])[0].astype(np.float64))
-                x = w.positions().astype(np.float64)
-                drift.append(x[w.strand("R").idx].mean(axis=0) - np.array([-0.5, 0.5, 0.3]))
-        assert w.control.is_kinematic([start])[0]
-        return np.array(places), np.array(drift)
-
-    places, drift = run(", at: [-0.5, 0.5, 0.3]")
-    moves = np.diff(places, axis=0)
-    assert len(moves) > 20
-    np.testing.assert_allclose(moves[:, 1], 0.0, atol=1e-6)  # level
-    assert np.linalg.norm(moves, axis=1).max() <= AT_SPEED / 60 + 1e-6
-    level = drift[1:] * np.array([1.0, 0.0, 1.0])
-    assert (np.einsum("ij,ij->i", moves, level) < 0).all()  # every move against the drift
-    assert np.linalg.norm(places[-1] - places[0]) > 10 * AT_SPEED / 60
-    assert np.linalg.norm(level, axis=1).min() > AT_TOLERANCE  # never within the tolerance here: always moving
-    still, _ = run("")
-    np.testing.assert_allclose(still, still[0][None].repeat(len(still), axis=0), atol=1e-7)
-
-
 def test_tightening_keeps_the_sites_it_is_told_to_keep():
     w = _world(PULL.replace("fsm:\n", "fsm:\n  - {run: Anchoring, with: {body: R, sites: [10, 20]}}\n")
                .replace("max_strain: 0.003}", "max_strain: 0.003, keep: [{body: R, sites: [10]}]}"))

@@ -27,10 +27,6 @@ MAX_OVERLAP = 0.05
 """Capsule overlap, over the radius, that makes a moved pull tight."""
 BACKOFF = 0.01
 """m each end of a moved pull gives back once the knot is tight."""
-AT_TOLERANCE = 0.01
-"""m across (level) the knot may drift from ``at`` before the hands on the kept sites carry it back."""
-AT_SPEED = 0.05
-"""m/s at which those hands carry it."""
 
 class Pull(Params):
     """One end pulled by Tightening: a site of a rope, a strand or a cloth line, and where it goes."""
@@ -68,11 +64,6 @@ class TighteningParams(Params):
     push: Push | None = None  # a hand that pushes the last wound part: {toward (a point or knot), force, speed}
     keep: list[Kept] = []  # held sites that are not let go when the pull starts (standing ends an object holds, tails a hand holds)
     knot: list[str] = []  # strands whose wound part is the knot (default: the pulled bodies)
-    # Where the knot is tied (a point, or an object's site with an offset; paper Table 3: the knotting
-    # position): while the ends are pulled, the hands that hold the ``keep`` sites (tails) move together,
-    # level, to carry the knot back when it drifts from there (a knot between two standing parts drawn
-    # down opposite sides of an object is in a neutral balance across its top, and slides).
-    at: TargetLike | None = None
     speed: Annotated[float, pydantic.Field(gt=0)] = 0.1  # m/s of each pulled end
     # N: pull each end with this force instead of moving it; ``speed`` is then
     # its top speed (drag force / speed). The knot settles where the tensions
@@ -150,11 +141,6 @@ class Tightening(Maneuver):
         # Where each pull and the push aim (places beside an object follow it).
         self.aims = [follow_target(w, q.toward) if q.toward is not None else None for q in p.pulls]
         self.push_aim = follow_target(w, p.push.toward) if p.push is not None and p.push.toward != "knot" else None
-        self.at_aim = follow_target(w, p.at) if p.at is not None else None
-        kept = [w.site_particles(k.body, s) for k in p.keep for s in k.sites]
-        kept = np.concatenate(kept) if kept else np.zeros(0, np.int64)
-        self.carriers = kept[w.control.is_driven(kept)]  # the hands that carry the knot to ``at``
-        self.carried = 0.0
         for q, aim in zip(p.pulls, self.aims):
             idx = w.site_particles(q.body, q.site)
             pos = x[idx].mean(axis=0)
@@ -249,21 +235,6 @@ class Tightening(Maneuver):
         the ends are drawn. A hand that let go once the part stopped closing left the knot to the pulls, which
         dragged it along: on square_knot's box top, 4 to 8 cm in 8 of 24 standard-sweep runs."""
         self._push_toward(x, self.pushed)
-
-    def _carry(self, x: np.ndarray) -> None:
-        """The hands on the kept sites move together, level, at most ``AT_SPEED``, against the knot's drift from
-        ``at`` beyond ``AT_TOLERANCE``: a tail on the far side of the drift draws the knot back, one on the near
-        side gives it room."""
-        rec = self._records()
-        wound = np.vstack([x[np.atleast_1d(v.particles)] for v in rec]) if rec else np.vstack([x[s.idx] for s in self.strands])
-        e = wound.mean(axis=0) - self.at_aim()
-        e -= np.dot(e, _UP) * _UP
-        n = float(np.linalg.norm(e))
-        if n <= AT_TOLERANCE:
-            return
-        step = min(AT_SPEED / self.world.fps, n - AT_TOLERANCE)
-        self.world.control.shift(self.carriers, -step * e / n)
-        self.carried += step
 
     def _knot_centre(self, x: np.ndarray) -> np.ndarray:
         rec = self.world.record.windings
@@ -360,8 +331,6 @@ class Tightening(Maneuver):
         x = w.positions().astype(np.float64)
         if len(self.pushed):
             self._update_push(x)
-        if self.at_aim is not None and len(self.carriers):
-            self._carry(x)
         strain, overlap = self._tension(x)
         self.last = (strain, overlap)
         if p.force is not None:
@@ -401,5 +370,4 @@ class Tightening(Maneuver):
 
     def metrics(self) -> dict[str, float]:
         s, o = getattr(self, "last", (0.0, 0.0))
-        return {"pulled": self.pulled, "strain": s, "overlap": o, "tight": float(self.tight),
-                "carried": getattr(self, "carried", 0.0)}
+        return {"pulled": self.pulled, "strain": s, "overlap": o, "tight": float(self.tight)}

@@ -196,15 +196,6 @@ class Control:
         self._grip[idx] = force
         self._dirty = True
 
-    def shift(self, idx, d) -> None:
-        """Move the places where particles ``idx`` are held by ``d`` (m), each held as before (a kinematic target,
-        or a grip's place); particles not held are left alone."""
-        idx = np.atleast_1d(np.asarray(idx, np.int64))
-        idx = idx[np.isin(self._driven[idx], (1, 3))]
-        if len(idx):
-            self._dst[idx] += np.asarray(d, np.float32).reshape(3)
-            self._dirty = True
-
     def release(self, idx) -> None:
         """Let particles ``idx`` move freely again (neither driven nor pulled)."""
         idx = np.atleast_1d(np.asarray(idx, np.int64))
