@@ -30,6 +30,10 @@ X_REACH = 0.8
 """Most of its reach a strand spends from its bottom to the crossing X: the rest carries it on beyond X."""
 MAX_REPLANS = 4
 """Times a Crossing whose strands pass too far apart moves its tips again, toward closing that miss."""
+TAUT_STRAIN = 0.02
+"""Rod strain of a strand at which the hand on its tip stops advancing: the reach a Crossing plans with is a
+straight line from each hold, and a strand that leaves an object under it (a cloth strip from under the box
+set on it) goes round the object's edge, with less reach than that."""
 
 
 def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -374,6 +378,7 @@ class Crossing(Maneuver):
         reach = (p.slack * len_c, p.slack * len_t)
         self.bases, self.reach, self.n_tips = bases, reach, len(plans)
         self.replans, self.waited = 0, 0
+        self.taut = [0, 0]  # times each tip's hand stopped short, its strand drawn taut
         self.misses: list[float] = []  # how far apart the strands passed each time the tips were moved again (m)
         for k, (body, site, goal, s) in enumerate(plans):
             idx = w.site_particles(body, site)
@@ -409,6 +414,7 @@ class Crossing(Maneuver):
         self.total = sum(float(np.linalg.norm(np.diff(np.vstack([m[1], *m[2]]), axis=0), axis=1).sum())
                          for m in self.moves) or 1.0
         self.travelled = 0.0
+        self.trails = [[] for _ in self.moves]  # where each hand was at the start of each frame it went on
         w.record.crossings[(p.active, p.target)] = self.x.copy()
 
     def _clear_waypoints(self, moves) -> None:
@@ -552,8 +558,24 @@ class Crossing(Maneuver):
         if not self.moves:
             return Status.FAILED
         arrived = True
+        x = w.positions().astype(np.float64)
         for k, (idx, pos, ways) in enumerate(self.moves):
             step = p.speed / w.fps
+            trail = self.trails[k]
+            if k < self.n_tips and float((self.c if k == 0 else self.t).strain(x).max()) > TAUT_STRAIN:
+                # Its strand is drawn taut (round something its planned reach does not see): the hand goes back
+                # a frame along its way and stops there, as far as the strand reaches; whether the strands cross
+                # from there is checked as for a hand that arrived.
+                step = 0.0
+                self.taut[k] += 1
+                if trail:
+                    back = trail.pop()
+                    self.travelled -= float(np.linalg.norm(pos - back))
+                    pos = back
+                self.travelled += sum(float(np.linalg.norm(b - a)) for a, b in zip([pos, *ways[:-1]], ways))
+                ways = []
+            else:
+                trail.append(pos)
             while step > 0 and ways:
                 d = ways[0] - pos
                 dist = float(np.linalg.norm(d))
@@ -581,7 +603,6 @@ class Crossing(Maneuver):
                     f"{float(np.linalg.norm(q - pos)):.3f} m short of {np.round(q, 3).tolist()}" for i, pos, q in stuck)
                 return Status.FAILED
             return Status.RUNNING
-        x = w.positions().astype(np.float64)
         tips_ok = all(np.linalg.norm(x[idx].mean(axis=0) - pos) <= p.tolerance for idx, pos, _ in self.moves)
         near, at_c, at_t = self.approach(x)
         if tips_ok and near <= self.gap + (self.c.radius + self.t.radius):
@@ -591,6 +612,9 @@ class Crossing(Maneuver):
             self.progress = 1.0
             if self.replans:
                 self.note = f"the tips were moved again {self.replans} times to close misses of {self.misses} m"
+            if any(self.taut):
+                self.note = (self.note + "; " if self.note else "") + (
+                    f"a hand stopped short {sum(self.taut)} times, its strand drawn taut")
             return Status.DONE
         if tips_ok and self.replans < MAX_REPLANS:
             self.waited += 1
@@ -603,6 +627,9 @@ class Crossing(Maneuver):
             self.message = (f"the strands pass {near:.3f} m apart after the tips arrived "
                             f"(a crossing needs at most {self.gap + self.c.radius + self.t.radius:.3f} m; "
                             f"the tips were moved again {self.replans} times to close it)")
+            if any(self.taut):
+                self.message += (f"; a hand stopped short {sum(self.taut)} times, its strand drawn taut "
+                                 f"(a rod stretched past {TAUT_STRAIN:.0%})")
             held = sorted(set(self.limits))
             if held:
                 self.message += "; held back by " + ", ".join(
