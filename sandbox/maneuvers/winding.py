@@ -23,7 +23,7 @@ import pydantic
 
 from sandbox.record import WindingRecord
 from sandbox.maneuvers.base import Maneuver, Params, Status, register
-from sandbox.maneuvers.knotting import check_two_strands, rope_holds, within_holds
+from sandbox.maneuvers.knotting import TAUT_STRAIN, check_two_strands, rope_holds, within_holds
 
 
 STUCK_FRAMES = 15
@@ -31,6 +31,8 @@ STUCK_FRAMES = 15
 may go without closing on its target before it is laid where it stopped."""
 STUCK_GAIN = 0.01
 """Closing on the target by less than this fraction of a rod in a frame counts as not closing."""
+TAUT_RODS = 3
+"""Rods of C on either side of the driven particle watched for a stretch (``_drawn_taut``)."""
 MAX_TICKS_PER_PARTICLE = 90
 """Frames a wound particle may take to reach its target before the winding fails."""
 SLIP_TURNS = 0.25
@@ -120,6 +122,7 @@ class Winding(Maneuver):
         # the rope is taut up to it, and the particles after it reach only from where it lies (``_keep_holds``).
         self.taut_at: int | None = None
         self.reach_held = False  # whether the holds' reach held the current command back this frame
+        self.taut_frames = 0  # frames the hand waited, C drawn taut behind it
         self.targets = self._targets(xt)
         n_left = (len(xc) - 1 - self.i0) if p.direction > 0 else self.i0
         self.too_short = self.n_turns - 1 > n_left  # the turns cannot be laid: the winding fails (``update``)
@@ -335,6 +338,11 @@ class Winding(Maneuver):
         if np.linalg.norm(self.pos - axis) < self.R:
             self.pos = self._around(before, target, step)
         self.pos = self._keep_holds(idx, self.pos)
+        if self._drawn_taut(idx):
+            # The rope behind the hand is drawn taut (the laid part lags, caught on T): the hand waits where it
+            # was until it gives; a particle that then stops closing on its target is laid short, as below.
+            self.pos = before
+            self.taut_frames += 1
         # Held back: by the hands that hold C, or by the tube (on every step that goes round T; a command
         # that the tube keeps from a target T has moved over since it was traced stops closing on it).
         held_back = float(np.linalg.norm(self.pos - wanted)) > 1e-9
@@ -378,6 +386,12 @@ class Winding(Maneuver):
             self.progress = 1.0
             return Status.DONE
         return Status.RUNNING
+
+    def _drawn_taut(self, idx: int) -> bool:
+        """Whether a rod of C within ``TAUT_RODS`` of the driven particle ``idx`` is stretched past ``TAUT_STRAIN``."""
+        at = int(np.flatnonzero(self.c.idx == idx)[0])
+        strain = self.c.strain(self.world.positions())
+        return bool(strain[max(at - TAUT_RODS, 0):at + TAUT_RODS].max(initial=0.0) > TAUT_STRAIN)
 
     def _hand_over(self, taken: int | None) -> None:
         """Let go of the particle laid last frame, now that the hand takes ``taken`` (None: nothing).
