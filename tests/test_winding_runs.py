@@ -427,3 +427,69 @@ def test_turns_that_slip_off_t_are_laid_again_and_hands_go_round_t():
         assert np.linalg.norm(nxt - pos) <= step * 1.01
         pos = nxt
     np.testing.assert_allclose(pos, goal, atol=1e-6)
+
+
+def test_drawn_taut_reads_the_rods_next_to_the_driven_particle():
+    """``_drawn_taut``: a rod of C stretched 3 % within ``TAUT_RODS`` of the driven particle is taut; 1 % is not,
+    nor 3 % further along C than that (C laid straight at its rods' length, one rod stretched)."""
+    from sandbox.maneuvers.knotting import TAUT_STRAIN
+    from sandbox.maneuvers.winding import TAUT_RODS
+
+    w = _shipped_world("rope_wind.yaml")
+    while w.fsm._maneuver is None or w.fsm._maneuver.name != "Winding":
+        w.step()
+    m = w.fsm._maneuver
+    idx = m._particle(m.k)
+    at = int(np.flatnonzero(m.c.idx == idx)[0])
+    rod = m.c.rod_length
+
+    def stretched(rod_k: int, by: float) -> bool:
+        x = w.state.x.to_numpy()
+        gaps = np.full(len(m.c.idx) - 1, rod)
+        gaps[rod_k] *= 1.0 + by
+        x[m.c.idx] = x[m.c.idx[0]] + np.concatenate([[0.0], np.cumsum(gaps)])[:, None] * np.array([1.0, 0.0, 0.0])
+        w.state.x.from_numpy(x)
+        return m._drawn_taut(idx)
+
+    assert TAUT_STRAIN < 0.03
+    assert stretched(at - 1, 0.03) and stretched(at, 0.03)
+    assert not stretched(at - 1, 0.01)
+    assert not stretched(at + TAUT_RODS + 1, 0.03)
+
+
+def test_winding_hand_waits_while_the_rope_behind_it_is_drawn_taut(monkeypatch):
+    """While C is drawn taut next to the driven particle (here reported so for 10 frames at the fourth
+    particle), the hand's command stays where it was; then the winding goes on and finishes."""
+    from sandbox.maneuvers import winding
+
+    calls = {"n": 0}
+
+    def taut(self, idx):
+        if self.k == 3 and calls["n"] < 10:
+            calls["n"] += 1
+            return True
+        return False
+
+    monkeypatch.setattr(winding.Winding, "_drawn_taut", taut)
+    w = _shipped_world("rope_wind.yaml")
+    commands = []
+    before = None
+    while not w.fsm.finished and w.fsm.state != "2:Wait":
+        n = calls["n"]
+        w.step()
+        m = w.fsm._maneuver
+        if m is not None and m.name == "Winding":
+            wound = m
+        if m is not None and m.name == "Winding" and m.k == 3:
+            now = w.control.target([m._particle(3)])[0].copy()
+            if calls["n"] > n:  # reported taut this frame: the command is the last frame's
+                commands.append(now)
+                if before is not None:
+                    np.testing.assert_allclose(now, before, atol=1e-7)
+            before = now if w.control.is_driven([m._particle(3)])[0] else None
+        else:
+            before = None
+    assert w.fsm.state == "2:Wait", w.fsm.events
+    assert len(commands) == 10
+    np.testing.assert_allclose(np.array(commands[1:]), np.array(commands[:-1]), atol=1e-7)
+    assert wound.taut_frames == 10
