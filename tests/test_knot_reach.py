@@ -7,6 +7,7 @@ from sandbox.levels import LevelError, load_level_from_string
 
 import sandbox.maneuvers  # noqa: F401
 from tests.levelkit import shipped_world, world_from_text as _world
+from tests.test_cloth_strands import HEAD
 from tests.test_knotting import TOUCHING, TWO_ROPES
 
 # rope_wind with its crossing pinched for the whole winding (and the time that takes).
@@ -384,16 +385,7 @@ def test_crossing_takes_a_waypoint_inside_an_object_out_to_its_clearance():
     assert w.fsm.succeeded, w.fsm.events[-3:]
 
 
-STRIP_FROM_UNDER = """
-version: 1
-name: strip_from_under
-scene:
-  gravity: [0, -9.81, 0]
-  ground: {height: 0.0, friction: 0.6}
-  objects:
-    - {name: box, shape: box, params: {size: [0.16, 0.12, 0.16]}, position: [0, 0.0, 0], friction: 0.6}
-  cloths:
-    - {name: F, resolution: [161, 5], size: [1.6, 0.04], center: [0, 0.13, 0], mass: 0.05, self_collision: true,
+STRIP_FROM_UNDER = HEAD.replace("name: cloth_strands", "name: strip_from_under") + """    - {name: F, resolution: [161, 5], size: [1.6, 0.04], center: [0, 0.13, 0], mass: 0.05, self_collision: true,
        bend_compliance: 0.5, friction: 0.6}
 sim: {fps: 60, substeps: 20, iterations: 2, frames: 300}
 fsm:
