@@ -449,7 +449,7 @@ def test_drawn_taut_reads_the_rods_next_to_the_driven_particle():
         gaps[rod_k] *= 1.0 + by
         x[m.c.idx] = x[m.c.idx[0]] + np.concatenate([[0.0], np.cumsum(gaps)])[:, None] * np.array([1.0, 0.0, 0.0])
         w.state.x.from_numpy(x)
-        return m._drawn_taut(idx)
+        return m._drawn_taut(idx, w.positions())
 
     assert TAUT_STRAIN < 0.03
     assert stretched(at - 1, 0.03) and stretched(at, 0.03)
@@ -464,7 +464,7 @@ def test_winding_hand_waits_while_the_rope_behind_it_is_drawn_taut(monkeypatch):
 
     calls = {"n": 0}
 
-    def taut(self, idx):
+    def taut(self, idx, x):
         if self.k == 3 and calls["n"] < 10:
             calls["n"] += 1
             return True

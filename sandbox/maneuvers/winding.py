@@ -299,7 +299,8 @@ class Winding(Maneuver):
             return Status.FAILED
         if self.k >= self.n:
             return Status.DONE
-        xt = w.positions()[self.t.idx].astype(np.float64)
+        now = w.positions()  # one read-back for this frame: the hands move nothing until the next step
+        xt = now[self.t.idx].astype(np.float64)
         moved = float(np.linalg.norm(xt - self.xt_traced, axis=1).max())
         if moved > 0.1 * self.R and self.k < self.n_turns:
             # T has moved: re-trace G on its current tube from the crossing carried along.
@@ -338,7 +339,7 @@ class Winding(Maneuver):
         if np.linalg.norm(self.pos - axis) < self.R:
             self.pos = self._around(before, target, step)
         self.pos = self._keep_holds(idx, self.pos)
-        if self._drawn_taut(idx):
+        if self._drawn_taut(idx, now):
             # The rope behind the hand is drawn taut (the laid part lags, caught on T): the hand waits where it
             # was until it gives; a particle that then stops closing on its target is laid short, as below.
             self.pos = before
@@ -347,7 +348,7 @@ class Winding(Maneuver):
         # that the tube keeps from a target T has moved over since it was traced stops closing on it).
         held_back = float(np.linalg.norm(self.pos - wanted)) > 1e-9
         w.control.drive([idx], self.pos[None, :])
-        x = w.positions()[idx]
+        x = now[idx]
         self.tick_in_particle += 1
         miss = float(np.linalg.norm(x - target))
         if miss < self.best_miss - STUCK_GAIN * self.c.rod_length:
@@ -387,10 +388,11 @@ class Winding(Maneuver):
             return Status.DONE
         return Status.RUNNING
 
-    def _drawn_taut(self, idx: int) -> bool:
-        """Whether a rod of C within ``TAUT_RODS`` of the driven particle ``idx`` is stretched past ``TAUT_STRAIN``."""
+    def _drawn_taut(self, idx: int, x: np.ndarray) -> bool:
+        """Whether a rod of C within ``TAUT_RODS`` of the driven particle ``idx`` is stretched past ``TAUT_STRAIN``
+        at positions ``x`` (all particles)."""
         at = int(np.flatnonzero(self.c.idx == idx)[0])
-        strain = self.c.strain(self.world.positions())
+        strain = self.c.strain(x)
         return bool(strain[max(at - TAUT_RODS, 0):at + TAUT_RODS].max(initial=0.0) > TAUT_STRAIN)
 
     def _hand_over(self, taken: int | None) -> None:
