@@ -1,23 +1,12 @@
 """Contact projections shared by ropes and cloth: ground, objects, friction.
 
 Contacts are resolved on positions (the particle's sphere is pushed out of
-the ground or object). Friction is Coulomb's law with one coefficient mu,
-its budget mu times the largest push out of the surface in the substep:
-
-- static, on positions (``static_friction``): a particle's slip along the
-  surface since the substep began, if within the budget, is undone in the
-  contact pass, so a load below mu times the normal force holds it where
-  it is. Left to velocities, such a slip stays in the position: a rod on a
-  slope below the friction angle crept by g h^2 sin(angle) a substep;
-- kinetic, on velocities at the end of the substep (``friction_velocity``):
-  a longer slip keeps its tangential velocity less the budget over h.
-
-The contact pass runs after the distance constraints and chain sweeps of
-each iteration, so a static contact takes their slip back only where it is
-within the budget. The load is the overlap the pass pushes out: a rope or
-cloth drawn taut over a solid presses on it without overlapping it (the
-chain step moves a particle in contact only along the surface), so its
-tension loads friction hardly at all (docs/benchmarks.md, "On a solid").
+the ground or object). Friction acts on velocities at the end of the
+substep: the tangential velocity relative to the surface loses at most
+mu times the normal velocity change that the push produced (Coulomb's law
+at velocity level). Acting on velocities, friction never fights the
+distance constraints inside a substep, so a cloth held by friction over a
+box edge cannot lock into a stretched state.
 
 Contacts are inelastic: at the end of a substep a particle that touched a
 surface keeps no velocity away from it (relative to the surface). The push
@@ -78,23 +67,6 @@ def friction_velocity(v, n, dv_max, v_surface):
     out = v
     if lt > 1e-12:
         out = v - vt * ti.min(dv_max / lt, 1.0)
-    return out
-
-
-@ti.func
-def static_friction(x, x_prev, n, budget, v_surface, dt: ti.f32):
-    """``x`` with its slip along the surface this substep undone where the slip is within ``budget``.
-
-    The slip is the motion since ``x_prev`` (the substep's start) relative to the surface (moving at
-    ``v_surface``), less its part along the normal ``n``. Static Coulomb friction on positions: a slip of
-    at most ``budget`` (m: mu times the largest push out of the surface this substep) is undone; a longer
-    one is left to ``friction_velocity`` (kinetic friction), so the two never take the same slip twice.
-    """
-    d = x - x_prev - v_surface * dt
-    dt_ = d - d.dot(n) * n
-    out = x
-    if dt_.norm() <= budget:
-        out = x - dt_
     return out
 
 

@@ -21,7 +21,7 @@ Per substep (each pass O(n) in particles or constraints):
 6. cloth self-collision, Jacobi gather over per-particle candidate lists
    (Verlet lists: patched or rebuilt from a spatial hash only when some
    particle has moved half their skin), rest neighbours excluded -- O(n k)
-7. ground and object contacts, with static friction on positions (analytic or grid SDF) -- O(n)
+7. ground and object contacts with friction (analytic or grid SDF) -- O(n)
 7b. optionally (``cloth_joint``), one Newton step on all rows and columns
    of each cloth together, by preconditioned CG (``cloth_joint.py``) --
    O(n) per CG iteration
@@ -56,8 +56,7 @@ import numpy as np
 import taichi as ti
 
 from sandbox import runtime
-from sandbox.collision.contacts import CONTACT_FLAG, Contacts, friction_velocity, inelastic_velocity, plane_push, \
-    static_friction
+from sandbox.collision.contacts import CONTACT_FLAG, Contacts, friction_velocity, inelastic_velocity, plane_push
 from sandbox.collision.medial import PASSES as MEDIAL_PASSES
 from sandbox.collision.medial import MedialSheet
 from sandbox.collision.ropecollision import RopeCollision
@@ -429,19 +428,6 @@ class XPBDSolver:
                 st.lam[e] = st.lam[e] + dlam
 
     @ti.func
-    def _touch(self, i, x, pen, n, mu, vs, dt: ti.f32):
-        """Record particle i's contact with a surface (normal ``n``, moving at ``vs``) that it overlaps by ``pen``
-        (m) and apply static friction, its budget mu times the largest overlap of the substep. Returns the
-        position with the slip undone where the budget holds it."""
-        self.contacts.normal[i] = n
-        self.contacts.hit[i] = 1.0
-        self.contacts.dv[i] = ti.max(self.contacts.dv[i], mu * pen / dt, CONTACT_FLAG)
-        self.contacts.vel[i] = vs
-        out = static_friction(x, self.st.x_prev[i], n, self.contacts.dv[i] * dt, vs, dt)
-        self.contacts.plane[i] = n.dot(out)
-        return out
-
-    @ti.func
     def _contacts(self, dt: ti.f32, gh: ti.f32, gmu: ti.f32):
         st = self.st
         mdl = self.model
@@ -453,15 +439,22 @@ class XPBDSolver:
                 if ti.static(self.has_ground):
                     x, pen = plane_push(x, r, gh)
                     if pen > 0.0:
-                        x = self._touch(i, x, pen, ti.math.vec3(0.0, 1.0, 0.0), 0.5 * (mu_p + gmu),
-                                        ti.math.vec3(0.0), dt)
+                        self.contacts.normal[i] = ti.math.vec3(0.0, 1.0, 0.0)
+                        self.contacts.hit[i] = 1.0
+                        self.contacts.dv[i] = ti.max(self.contacts.dv[i], 0.5 * (mu_p + gmu) * pen / dt, CONTACT_FLAG)
+                        self.contacts.vel[i] = ti.math.vec3(0.0)
+                        self.contacts.plane[i] = x[1]
                 if ti.static(self.has_objects):
                     d, n, k = self.objects.query_within(x, r)
                     pen = r - d
                     if pen > 0.0:
                         x += pen * n
-                        x = self._touch(i, x, pen, n, 0.5 * (mu_p + self.objects.friction(k)),
-                                        self.objects.velocity_at(k, x), dt)
+                        mu = 0.5 * (mu_p + self.objects.friction(k))
+                        self.contacts.normal[i] = n
+                        self.contacts.hit[i] = 1.0
+                        self.contacts.dv[i] = ti.max(self.contacts.dv[i], mu * pen / dt, CONTACT_FLAG)
+                        self.contacts.vel[i] = self.objects.velocity_at(k, x)
+                        self.contacts.plane[i] = n.dot(x)
                 st.x[i] = x
 
     @ti.func
