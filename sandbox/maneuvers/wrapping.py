@@ -26,9 +26,16 @@ free direction u give each particle with arc length s its target: O(s) for
 s <= c, O(c) + (s - c) u beyond. u turns towards the desired direction
 (the tangent of O ahead of c) about the contact at an angular speed that
 moves the corner at ``speed``; the contact advances at ``speed`` only while
-u is on the desired direction. With ``beyond: up`` the free part is aimed at
-a point above the end of the line, so that corners end standing up there
+u is on the desired direction. With ``beyond: up`` the free part is aimed
+at a point above the end of the line, so that corners end standing up there
 (the start of a knot), each ``stop_short`` before the end.
+
+Each particle's command moves towards its target at ``speed`` at most and
+is kept a half thickness clear of every object and the ground
+(``World.clear_of_solids``): a driven particle takes no contacts, and the
+free part's straight line, or a command's way to it, can cut an object's
+edge or vertex (on a box traced at 70 degrees the targets went 1.9 half
+thicknesses into its top vertex, and the run went unstable).
 """
 
 from __future__ import annotations
@@ -471,6 +478,9 @@ class Wrapping(Maneuver):
             delta = goal - cmd
             dist = np.linalg.norm(delta, axis=1, keepdims=True)
             cmd += delta * np.minimum(1.0, p.speed * dt / np.maximum(dist, 1e-12))
+            # A driven particle takes no contacts: where the free part's straight line (or the command's
+            # way to it) cuts an object's edge or vertex, the hand keeps it a half thickness clear.
+            cmd[:] = self.world.clear_of_solids(cmd, self.r)
             self.world.control.drive(ln.driven, cmd)
             finished = ln.c >= ln.c_end - 1e-9 and float(np.linalg.norm(ln.targets() - cmd, axis=1).max()) < 1e-6
             settled &= finished and self._overlap(ln, x)[1] <= self.tol
