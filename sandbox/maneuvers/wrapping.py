@@ -470,19 +470,17 @@ class Wrapping(Maneuver):
         done_arc = 0.0
         for ln in self.lines:
             cmd = self.cmd[ln.corner]
-            goal = ln.targets()
+            goal = self._clear(ln.targets())
             lag = float(np.linalg.norm(goal - cmd, axis=1).max())
             if lag <= p.speed * dt:  # the command has caught up: move the line on
                 self._advance(ln, p.speed * dt)
-                goal = ln.targets()
+                goal = self._clear(ln.targets())
             delta = goal - cmd
             dist = np.linalg.norm(delta, axis=1, keepdims=True)
             cmd += delta * np.minimum(1.0, p.speed * dt / np.maximum(dist, 1e-12))
-            # A driven particle takes no contacts: where the free part's straight line (or the command's
-            # way to it) cuts an object's edge or vertex, the hand keeps it a half thickness clear.
-            cmd[:] = self.world.clear_of_solids(cmd, self.r)
+            cmd[:] = self._clear(cmd)  # its way to the goal may cut an edge too
             self.world.control.drive(ln.driven, cmd)
-            finished = ln.c >= ln.c_end - 1e-9 and float(np.linalg.norm(ln.targets() - cmd, axis=1).max()) < 1e-6
+            finished = ln.c >= ln.c_end - 1e-9 and float(np.linalg.norm(goal - cmd, axis=1).max()) < 1e-6
             settled &= finished and self._overlap(ln, x)[1] <= self.tol
             done_arc += ln.c
         self.progress = min(1.0, done_arc / self.total)
@@ -495,6 +493,11 @@ class Wrapping(Maneuver):
             self.world.control.release(laid[:-1] if len(laid) == len(ln.driven) else laid)
         self.released_at = self.ticks
         return Status.RUNNING
+
+    def _clear(self, points: np.ndarray) -> np.ndarray:
+        """``points`` kept a half thickness clear of every object and the ground: a driven particle takes no
+        contacts, and the free part's straight line can cut an object's edge or vertex."""
+        return self.world.clear_of_solids(points, self.r)
 
     def _settling(self) -> Status:
         if self.ticks - self.released_at < self.params.settle * self.world.fps:
